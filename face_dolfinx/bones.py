@@ -1,0 +1,76 @@
+"""Bone frames: affine maps for the cranium and the mandible, and the TMJ articulation.
+
+Sifakis et al. 2005 section 8 describe each bone frame by a general affine map (M, t), rigid only
+through a penalty; the jaw frame is relative to the cranium. The exact-mode parameterisation of
+the jaw is its three TMJ degrees of freedom: the two condyle slides along tracks parallel to v and
+the opening rotation about the condyle axis.
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class AffineMap:
+    """x -> M x + t."""
+
+    matrix: np.ndarray = field(default_factory=lambda: np.eye(3))
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self):
+        object.__setattr__(self, "matrix", np.asarray(self.matrix, dtype=float).reshape(3, 3))
+        object.__setattr__(self, "translation", np.asarray(self.translation, dtype=float).reshape(3))
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return points @ self.matrix.T + self.translation
+
+    def compose(self, inner: "AffineMap") -> "AffineMap":
+        """self o inner."""
+        return AffineMap(self.matrix @ inner.matrix, self.matrix @ inner.translation + self.translation)
+
+    def inverse(self) -> "AffineMap":
+        inv = np.linalg.inv(self.matrix)
+        return AffineMap(inv, -inv @ self.translation)
+
+    def interpolate(self, other: "AffineMap", t: float) -> "AffineMap":
+        """Linear blend of the 12 numbers, as the paper's line search and our continuation use."""
+        return AffineMap((1 - t) * self.matrix + t * other.matrix,
+                         (1 - t) * self.translation + t * other.translation)
+
+    def is_identity(self) -> bool:
+        return np.allclose(self.matrix, np.eye(3), atol=0, rtol=0) and not self.translation.any()
+
+
+def rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation matrix about a unit ``axis`` by ``angle`` radians (right hand rule)."""
+    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def rigid_map(rotation_matrix: np.ndarray, center: np.ndarray, displacement: np.ndarray) -> AffineMap:
+    """Rotation about ``center`` followed by a translation ``displacement``."""
+    c = np.asarray(center, dtype=float)
+    return AffineMap(rotation_matrix, c - rotation_matrix @ c + np.asarray(displacement, dtype=float))
+
+
+def jaw_pose(jaw, opening_angle: float = 0.0, slide_right: float = 0.0,
+             slide_left: float = 0.0) -> AffineMap:
+    """Mandible frame (relative to the cranium) from the three TMJ degrees of freedom.
+
+    The condyles slide by ``slide_right``/``slide_left`` (mm) along v; unequal slides turn the jaw
+    about w. The jaw then opens by ``opening_angle`` (radians, positive opens the mouth: the chin
+    moves along -w) about the displaced condyle axis. The result satisfies psi_1..psi_3 exactly,
+    psi_4 = slide_right, psi_5 = slide_left and psi_6 = -sin(opening_angle), all exactly.
+    """
+    u, v, w = jaw.u, jaw.v, jaw.w
+    half = 0.5 * jaw.condyle_distance
+    # sin(yaw) = (slide_left - slide_right) / l puts each condyle exactly at its slide along v.
+    yaw = np.arcsin(np.clip((slide_left - slide_right) / (2 * half), -1.0, 1.0))
+    turn = rotation(w, -yaw)  # the left condyle forward turns u towards +v: negative about w
+    axis = turn @ u
+    midpoint_shift = 0.5 * (slide_right + slide_left) * v
+    opening = rotation(axis, opening_angle)
+    M = opening @ turn
+    new_mid = jaw.midpoint + midpoint_shift
+    return AffineMap(M, new_mid - M @ jaw.midpoint)

@@ -1,0 +1,259 @@
+"""The quasistatic face: spaces, forms, boundary conditions and the equilibrium solver.
+
+``FaceProblem`` alone owns the function spaces, the compiled forms and the SNES solver. Controls
+(muscle activations, cranium frame, mandible frame relative to the cranium) live in DG0 functions
+and in the Dirichlet values, so changing them never recompiles a form.
+
+Muscles are embedded per tetrahedron (Sifakis et al. 2005 section 3). Rather than one UFL term per
+muscle (32 terms of piecewise curves make FFCx slow and the kernels long), each cell carries K
+"slots" (K = the largest number of muscles overlapping in one cell): slot k holds the fiber, the
+weight sigma_max * fraction and the activation of the k-th muscle present there. The forms see K
+fiber terms whatever the number of muscles; activations are scattered into the slots.
+"""
+from dataclasses import dataclass
+import logging
+
+from mpi4py import MPI
+from petsc4py import PETSc
+import numpy as np
+import ufl
+from dolfinx import fem
+import dolfinx.fem.petsc as fem_petsc
+
+import forms
+from .bones import AffineMap
+from .solver import QuasistaticSolver, SolveReport, compile_form
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Controls:
+    """Everything that drives the face: activations, cranium frame, jaw frame (rel. cranium)."""
+
+    activations: np.ndarray
+    cranium: AffineMap
+    jaw: AffineMap
+
+    def interpolate(self, other: "Controls", t: float) -> "Controls":
+        return Controls((1 - t) * self.activations + t * other.activations,
+                        self.cranium.interpolate(other.cranium, t), self.jaw.interpolate(other.jaw, t))
+
+    def copy(self) -> "Controls":
+        return Controls(self.activations.copy(), self.cranium, self.jaw)
+
+
+@dataclass
+class MuscleSlots:
+    """Muscle data scattered into K per-cell slots (see module docstring)."""
+
+    muscle_of_slot: np.ndarray  # (K, num_local_cells) muscle index or -1
+    weight: list                # K DG0 functions: sigma_max * volume fraction
+    fiber: list                 # K DG0 vector functions: unit rest fiber direction
+    activation: list            # K DG0 functions: the activation of the slot's muscle
+    direction: list             # K DG0 functions: an activation direction (for f_i = df/da_i)
+
+
+def _dg0_cell_dofs(space: fem.FunctionSpace) -> np.ndarray:
+    """DG0 dof of every local cell (owned and ghost)."""
+    return space.dofmap.list.array.reshape(-1)
+
+
+def build_muscle_slots(model, mesh) -> MuscleSlots:
+    tdim = mesh.topology.dim
+    num_cells = mesh.topology.index_map(tdim).size_local + mesh.topology.index_map(tdim).num_ghosts
+    entries_cell, entries_muscle, entries_weight, entries_fiber = [], [], [], []
+    default_stress = model.material.get("fiber_stress", 300.0)
+    for index, muscle in enumerate(model.muscles):
+        stress = muscle.peak_stress if muscle.peak_stress is not None else default_stress
+        entries_cell.append(np.asarray(muscle.cells, dtype=np.int64))
+        entries_muscle.append(np.full(len(muscle.cells), index))
+        entries_weight.append(stress * np.asarray(muscle.fraction, dtype=float))
+        entries_fiber.append(np.asarray(muscle.fiber, dtype=float).reshape(-1, 3))
+    cells = np.concatenate(entries_cell) if entries_cell else np.zeros(0, dtype=np.int64)
+    order = np.argsort(cells, kind="stable")
+    cells = cells[order]
+    muscles = np.concatenate(entries_muscle)[order] if entries_cell else cells
+    weights = np.concatenate(entries_weight)[order] if entries_cell else np.zeros(0)
+    fibers = np.concatenate(entries_fiber)[order] if entries_cell else np.zeros((0, 3))
+    # Slot of each entry = its rank among the entries of the same cell.
+    first_of_cell = np.searchsorted(cells, cells, side="left")
+    slot = np.arange(len(cells)) - first_of_cell
+    local_slots = int(slot.max()) + 1 if len(slot) else 0
+    num_slots = max(1, mesh.comm.allreduce(local_slots, op=MPI.MAX))  # same forms on every rank
+
+    DG0 = fem.FunctionSpace(mesh, ("DG", 0))
+    DG0v = fem.VectorFunctionSpace(mesh, ("DG", 0))
+    dofs = _dg0_cell_dofs(DG0)
+    muscle_of_slot = -np.ones((num_slots, num_cells), dtype=np.int64)
+    weight, fiber, activation, direction = [], [], [], []
+    for k in range(num_slots):
+        in_slot = slot == k
+        c = cells[in_slot]
+        muscle_of_slot[k, c] = muscles[in_slot]
+        w = fem.Function(DG0, name=f"muscle_weight_{k}")
+        w.x.array[dofs[c]] = weights[in_slot]
+        f = fem.Function(DG0v, name=f"fiber_{k}")
+        f_values = f.x.array.reshape(-1, 3)
+        f_values[:, 0] = 1.0  # any unit vector where the slot is empty (weight 0 there)
+        f_values[dofs[c]] = fibers[in_slot]
+        weight.append(w)
+        fiber.append(f)
+        activation.append(fem.Function(DG0, name=f"activation_{k}"))
+        direction.append(fem.Function(DG0, name=f"activation_direction_{k}"))
+    # Slot data come from every rank's own (owned + ghost) cells: nothing to scatter.
+    return MuscleSlots(muscle_of_slot, weight, fiber, activation, direction)
+
+
+class FaceProblem:
+    """Quasistatic face for given activations and bone frames.
+
+    Parameters
+    ----------
+    model : FaceModel (``face_dolfinx.model``): mesh, facet tags, muscles, material.
+    degree : polynomial degree of the displacement (1 or 2; 2 cures most volumetric locking).
+    quadrature_degree : defaults to the degree that integrates the P1 forms exactly (1) and
+        2 for P2; FFCx's own estimate for these forms is far too high.
+    petsc_options : PETSc options for the SNES/KSP/PC (prefix ``face_``), e.g.
+        {"pc_type": "hypre", "ksp_type": "cg"} to try AMG instead of MUMPS Cholesky.
+    """
+
+    def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
+                 petsc_options: dict | None = None):
+        self.model = model
+        mesh = self.mesh = model.mesh
+        self.comm = mesh.comm
+        self.num_muscles = len(model.muscles)
+        self.V = fem.VectorFunctionSpace(mesh, ("CG", degree))
+        self.u = fem.Function(self.V, name="displacement")
+        q = quadrature_degree if quadrature_degree is not None else max(1, 2 * (degree - 1))
+        dx = ufl.dx(domain=mesh, metadata={"quadrature_degree": q})
+        self.slots = build_muscle_slots(model, mesh)
+
+        material = model.material
+        F = forms.deformation_gradient(self.u)
+        laws = [forms.MooneyRivlin(material["mu10"], material["mu01"]),
+                forms.LogVolumetric(material["kappa"])]
+        for w, f0, a in zip(self.slots.weight, self.slots.fiber, self.slots.activation):
+            laws += [forms.PassiveFiber(f0, w), forms.ActiveFiber(f0, w, a)]
+        energy = sum(law.strain_energy(F) for law in laws) * dx
+        v = ufl.TestFunction(self.V)
+        residual = ufl.derivative(energy, self.u, v)
+        # df/da along ``direction``: the same active law with the direction in place of a.
+        active_along_direction = sum(
+            forms.ActiveFiber(f0, w, d).strain_energy(F)
+            for w, f0, d in zip(self.slots.weight, self.slots.fiber, self.slots.direction)) * dx
+        self._active_residual = compile_form(ufl.derivative(active_along_direction, self.u, v))
+
+        self.cranium_blocks, self.mandible_blocks = self._bone_dof_blocks()
+        self._dof_coordinates = self.V.tabulate_dof_coordinates()[:, :3]
+        self.bone_displacement = fem.Function(self.V, name="bone_displacement")
+        self.bcs = [fem.dirichletbc(self.bone_displacement,
+                                    np.concatenate([self.cranium_blocks, self.mandible_blocks]))]
+        self.solver = QuasistaticSolver(residual, self.u, self.bcs, energy=energy,
+                                        petsc_options=petsc_options)
+        self.controls = Controls(np.zeros(self.num_muscles), AffineMap(), AffineMap())
+        self._set_controls(self.controls)
+
+    # -- set-up ------------------------------------------------------------------------------
+    def _bone_dof_blocks(self):
+        tags = self.model.facet_tags
+        fdim = self.mesh.topology.dim - 1
+        ids = self.model.boundary_ids
+
+        def blocks(name):
+            return fem.locate_dofs_topological(self.V, fdim, tags.find(ids[name]))
+
+        cranium = blocks("cranium")
+        # A node on both bones stays with the skull: the cranium is the fixed reference.
+        mandible = np.setdiff1d(blocks("mandible"), cranium)
+        if self.comm.allreduce(len(cranium), op=MPI.SUM) == 0:
+            raise ValueError(f"model {self.model.path}: no cranium-attached facets (tag {ids['cranium']})")
+        return cranium, mandible
+
+    # -- controls ----------------------------------------------------------------------------
+    def activation_vector(self, activations) -> np.ndarray:
+        """Activations as a vector in model muscle order from a vector or a {name: value} dict."""
+        if isinstance(activations, dict):
+            vector = np.zeros(self.num_muscles)
+            for name, value in activations.items():
+                vector[self.model.muscle_index(name)] = value
+        else:
+            vector = np.asarray(activations, dtype=float).reshape(-1)
+            if vector.shape != (self.num_muscles,):
+                raise ValueError(f"expected {self.num_muscles} activations, got {vector.shape[0]}")
+        bad = np.flatnonzero(~((vector >= 0.0) & (vector <= 1.0)))
+        if bad.size:
+            names = ", ".join(f"{self.model.muscles[i].name}={vector[i]:g}" for i in bad)
+            raise ValueError(f"activations must lie in [0, 1]: {names}")
+        return vector
+
+    def _scatter(self, vector: np.ndarray, targets: list) -> None:
+        """Put a per-muscle vector into the per-slot DG0 functions ``targets``."""
+        padded = np.append(vector, 0.0)  # index -1 (empty slot) reads 0
+        dofs = _dg0_cell_dofs(targets[0].function_space)
+        for k, target in enumerate(targets):
+            target.x.array[dofs] = padded[self.slots.muscle_of_slot[k]]
+
+    def _set_controls(self, controls: Controls) -> None:
+        self._scatter(controls.activations, self.slots.activation)
+        X = self._dof_coordinates
+        values = self.bone_displacement.x.array.reshape(-1, 3)
+        cranium_blocks, mandible_blocks = self.cranium_blocks, self.mandible_blocks
+        values[cranium_blocks] = controls.cranium.apply(X[cranium_blocks]) - X[cranium_blocks]
+        jaw_in_world = controls.cranium.compose(controls.jaw)
+        values[mandible_blocks] = jaw_in_world.apply(X[mandible_blocks]) - X[mandible_blocks]
+        self.controls = controls
+
+    def _move_rigidly(self, old: AffineMap, new: AffineMap) -> None:
+        """Carry the current shape along a change of the cranium frame (exact for rigid motion)."""
+        change = new.compose(old.inverse())
+        X = self._dof_coordinates
+        values = self.u.x.array.reshape(-1, 3)
+        values[:] = change.apply(X + values) - X
+
+    # -- solving -----------------------------------------------------------------------------
+    def solve(self, activations=None, cranium: AffineMap | None = None,
+              jaw: AffineMap | None = None) -> SolveReport:
+        """Equilibrium for the given controls (unspecified ones keep their values), starting from
+        the current equilibrium; falls back to continuation when Newton fails."""
+        start = self.controls.copy()
+        target = Controls(
+            self.activation_vector(activations) if activations is not None else start.activations,
+            cranium if cranium is not None else start.cranium,
+            jaw if jaw is not None else start.jaw)
+
+        def set_controls(t):
+            self._set_controls(start.interpolate(target, t))
+
+        def predictor(t0, t1):
+            old = start.cranium.interpolate(target.cranium, t0)
+            new = start.cranium.interpolate(target.cranium, t1)
+            if not np.array_equal(old.matrix, new.matrix) or not np.array_equal(old.translation, new.translation):
+                self._move_rigidly(old, new)
+
+        report = self.solver.solve_continuation(set_controls, predictor=predictor)
+        self._set_controls(target)
+        return report
+
+    def active_force(self, muscle: int, out: PETSc.Vec | None = None) -> PETSc.Vec:
+        """f_i = df/da_i at the current shape (zero on Dirichlet dofs): the right-hand side of
+        K dX/da_i = f_i (sifakis2005 eq. 5)."""
+        direction = np.zeros(self.num_muscles)
+        direction[muscle] = 1.0
+        self._scatter(direction, self.slots.direction)
+        if out is None:
+            out = fem_petsc.create_vector(self._active_residual)
+        with out.localForm() as local:
+            local.set(0.0)
+        fem_petsc.assemble_vector(out, self._active_residual)
+        out.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        out.scale(-1.0)  # force = -d(energy)/dx
+        fem_petsc.set_bc(out, self.bcs, scale=0.0)
+        return out
+
+    def energy(self) -> float:
+        return self.solver.energy()
+
+    def residual_norm(self) -> float:
+        return self.solver.residual_norm()
