@@ -23,4 +23,4 @@ test-serial:
 	$(PYTHON) -m pytest tests -q
 
 test-mpi:
-	mpirun -n 2 $(PYTHON) -m pytest tests -q -p no:cacheprovider
+	mpirun -n 2 $(PYTHON) -m pytest tests -q -p no:cacheprovider --color=no
