@@ -47,7 +47,7 @@ class Controls:
 class MuscleSlots:
     """Muscle data scattered into K per-cell slots (see module docstring)."""
 
-    muscle_of_slot: np.ndarray  # (K, num_local_cells) muscle index or -1
+    muscle_of_slot: np.ndarray  # (K, num DG0 dofs) muscle index or -1, in DG0 dof order
     weight: list                # K DG0 functions: sigma_max * volume fraction
     fiber: list                 # K DG0 vector functions: unit rest fiber direction
     activation: list            # K DG0 functions: the activation of the slot's muscle
@@ -59,13 +59,16 @@ def _dg0_cell_dofs(space: fem.FunctionSpace) -> np.ndarray:
     return space.dofmap.list.array.reshape(-1)
 
 
+def peak_stress(model, index: int) -> float:
+    """sigma_max of muscle ``index``: its own value or the model's default fiber stress."""
+    own = model.muscles[index].peak_stress
+    return own if own is not None else model.material.get("fiber_stress", 300.0)
+
+
 def build_muscle_slots(model, mesh) -> MuscleSlots:
-    tdim = mesh.topology.dim
-    num_cells = mesh.topology.index_map(tdim).size_local + mesh.topology.index_map(tdim).num_ghosts
     entries_cell, entries_muscle, entries_weight, entries_fiber = [], [], [], []
-    default_stress = model.material.get("fiber_stress", 300.0)
     for index, muscle in enumerate(model.muscles):
-        stress = muscle.peak_stress if muscle.peak_stress is not None else default_stress
+        stress = peak_stress(model, index)
         entries_cell.append(np.asarray(muscle.cells, dtype=np.int64))
         entries_muscle.append(np.full(len(muscle.cells), index))
         entries_weight.append(stress * np.asarray(muscle.fraction, dtype=float))
@@ -85,12 +88,12 @@ def build_muscle_slots(model, mesh) -> MuscleSlots:
     DG0 = fem.FunctionSpace(mesh, ("DG", 0))
     DG0v = fem.VectorFunctionSpace(mesh, ("DG", 0))
     dofs = _dg0_cell_dofs(DG0)
-    muscle_of_slot = -np.ones((num_slots, num_cells), dtype=np.int64)
+    muscle_of_slot = -np.ones((num_slots, len(dofs)), dtype=np.int64)
     weight, fiber, activation, direction = [], [], [], []
     for k in range(num_slots):
         in_slot = slot == k
         c = cells[in_slot]
-        muscle_of_slot[k, c] = muscles[in_slot]
+        muscle_of_slot[k, dofs[c]] = muscles[in_slot]
         w = fem.Function(DG0, name=f"muscle_weight_{k}")
         w.x.array[dofs[c]] = weights[in_slot]
         f = fem.Function(DG0v, name=f"fiber_{k}")
@@ -191,9 +194,8 @@ class FaceProblem:
     def _scatter(self, vector: np.ndarray, targets: list) -> None:
         """Put a per-muscle vector into the per-slot DG0 functions ``targets``."""
         padded = np.append(vector, 0.0)  # index -1 (empty slot) reads 0
-        dofs = _dg0_cell_dofs(targets[0].function_space)
         for k, target in enumerate(targets):
-            target.x.array[dofs] = padded[self.slots.muscle_of_slot[k]]
+            target.x.array[:] = padded[self.slots.muscle_of_slot[k]]
 
     def _set_controls(self, controls: Controls) -> None:
         self._scatter(controls.activations, self.slots.activation)
@@ -251,6 +253,9 @@ class FaceProblem:
         out.scale(-1.0)  # force = -d(energy)/dx
         fem_petsc.set_bc(out, self.bcs, scale=0.0)
         return out
+
+    def peak_stress(self, muscle: int) -> float:
+        return peak_stress(self.model, muscle)
 
     def energy(self) -> float:
         return self.solver.energy()
