@@ -1,0 +1,96 @@
+"""Forward solve cost against mesh size: neutral -> expression on the built-in face.
+
+For each resolution this builds (or reuses) the built-in face, sets up the problem and solves
+the equilibrium from rest to each named expression (rest again between them), recording wall time,
+Newton iterations, load steps and peak memory (summed over ranks). One line of JSON per
+resolution goes to stdout; ``--table`` appends the rows to a Markdown table.
+
+    mpirun -n 2 python benchmarks/forward_scaling.py --tets 5000 50000 400000
+    python benchmarks/forward_scaling.py --collect docs/forward_performance.md runs/*.jsonl
+"""
+import argparse
+import json
+import math
+import pathlib
+import resource
+import time
+
+from mpi4py import MPI
+import numpy as np
+
+
+def peak_memory_gb(comm) -> float:
+    """Peak resident memory of all ranks together (GB)."""
+    kilobytes = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return comm.allreduce(kilobytes, op=MPI.SUM) / 1024**2
+
+
+def run_resolution(target_tets: int, expressions: list[str], degree: int) -> dict:
+    from face_dolfinx.anatomy import build_builtin_face
+    from face_dolfinx.bones import AffineMap, jaw_pose
+    from face_dolfinx.model import load_model
+    from face_dolfinx.problem import FaceProblem
+
+    comm = MPI.COMM_WORLD
+    t0 = time.perf_counter()
+    path = build_builtin_face(target_tets=target_tets)
+    t_build = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    model = load_model(path, comm)
+    t_load = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    problem = FaceProblem(model, degree=degree)
+    t_setup = time.perf_counter() - t0
+    row = dict(target_tets=target_tets, tets=model.mesh.topology.index_map(3).size_global,
+               dofs=3 * problem.V.dofmap.index_map.size_global, ranks=comm.size, degree=degree,
+               build_s=round(t_build, 2), load_s=round(t_load, 2), setup_s=round(t_setup, 2),
+               solves={})
+    for name in expressions:
+        spec = dict(model.expressions[name])
+        opening = math.radians(spec.pop("jaw_opening_deg", 0.0))
+        jaw = jaw_pose(model.jaw, opening) if opening else AffineMap()
+        problem.u.x.array[:] = 0.0
+        problem.solve(activations=np.zeros(problem.num_muscles), jaw=AffineMap())
+        comm.barrier()
+        t0 = time.perf_counter()
+        report = problem.solve(activations=spec, jaw=jaw)
+        comm.barrier()
+        row["solves"][name] = dict(seconds=round(time.perf_counter() - t0, 2),
+                                   newton=report.newton_iterations, load_steps=report.load_steps)
+    row["peak_memory_gb"] = round(peak_memory_gb(comm), 2)
+    return row
+
+
+TABLE_HEADER = ("| tets | dofs | ranks | build s | setup s | expression | solve s | Newton its | "
+                "load steps | peak memory GB |\n|---|---|---|---|---|---|---|---|---|---|\n")
+
+
+def markdown_rows(row: dict) -> str:
+    return "".join(
+        f"| {row['tets']} | {row['dofs']} | {row['ranks']} | {row['build_s']} | {row['setup_s']} | "
+        f"{name} | {s['seconds']} | {s['newton']} | {s['load_steps']} | {row['peak_memory_gb']} |\n"
+        for name, s in row["solves"].items())
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tets", type=int, nargs="+", default=[5000, 20000, 50000])
+    parser.add_argument("--expressions", nargs="+", default=["smile", "jaw_open"])
+    parser.add_argument("--degree", type=int, default=1)
+    parser.add_argument("--collect", nargs="+", metavar=("TABLE", "JSONL"),
+                        help="write a Markdown table TABLE from JSON-lines files")
+    args = parser.parse_args()
+    if args.collect:
+        table, *sources = args.collect
+        rows = [json.loads(line) for src in sources for line in pathlib.Path(src).read_text().splitlines() if line]
+        rows.sort(key=lambda r: (r["tets"], r["ranks"]))
+        pathlib.Path(table).write_text(TABLE_HEADER + "".join(markdown_rows(r) for r in rows))
+        return
+    for target in args.tets:
+        row = run_resolution(target, args.expressions, args.degree)
+        if MPI.COMM_WORLD.rank == 0:
+            print(json.dumps(row), flush=True)
+
+
+if __name__ == "__main__":
+    main()
