@@ -10,7 +10,9 @@ import tempfile
 
 from mpi4py import MPI
 import numpy as np
-from dolfinx import fem, geometry, io
+from dolfinx import fem, io
+
+from .points import PointEvaluator
 
 
 @contextmanager
@@ -44,27 +46,8 @@ def atomic_directory(path, comm=MPI.COMM_WORLD, overwrite: bool = False):
 
 
 def displacement_at(u: fem.Function, points: np.ndarray) -> np.ndarray:
-    """u at ``points`` (n, 3), the same array on every rank (NaN where no cell contains a point)."""
-    domain = u.function_space.mesh
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    tree = geometry.BoundingBoxTree(domain, domain.topology.dim)
-    colliding = geometry.compute_colliding_cells(
-        domain, geometry.compute_collisions(tree, points), points)
-    owned_cells = domain.topology.index_map(domain.topology.dim).size_local
-    local = np.zeros((len(points), 3))
-    found = np.zeros(len(points))
-    for i in range(len(points)):
-        cells = colliding.links(i)
-        cells = cells[cells < owned_cells]  # each point counted once: owned cells only
-        if len(cells):
-            local[i] = u.eval(points[i], cells[:1])
-            found[i] = 1.0
-    total = np.zeros_like(local)
-    count = np.zeros_like(found)
-    domain.comm.Allreduce(local * 1.0, total, op=MPI.SUM)
-    domain.comm.Allreduce(found, count, op=MPI.SUM)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count[:, None] > 0, total / count[:, None], np.nan)
+    """u at ``points`` (n, 3) of the reference configuration, the same array on every rank."""
+    return PointEvaluator(u.function_space, points).values(u.x.array)
 
 
 class FaceWriter:
