@@ -65,7 +65,7 @@ class PointEvaluator:
     def values(self, array: np.ndarray) -> np.ndarray:
         """Field values (n, block size) at the points from a local dof array (owned + ghost)."""
         local = self.matrix @ np.asarray(array).reshape(-1, self.block_size)
-        total = np.zeros_like(local)
+        total = np.zeros(local.shape)
         self.comm.Allreduce(np.ascontiguousarray(local), total, op=MPI.SUM)
         return total
 
@@ -74,7 +74,8 @@ class PointEvaluator:
         k = len(arrays)
         stacked = np.asarray(arrays).reshape(k, -1, self.block_size).transpose(1, 0, 2).reshape(
             -1, k * self.block_size)
-        local = (self.matrix @ stacked).reshape(self.num_points, k, self.block_size).transpose(1, 0, 2)
-        total = np.zeros_like(local)
+        local = np.ascontiguousarray(
+            (self.matrix @ stacked).reshape(self.num_points, k, self.block_size).transpose(1, 0, 2))
+        total = np.zeros(local.shape)
         self.comm.Allreduce(np.ascontiguousarray(local), total, op=MPI.SUM)
         return total
