@@ -149,10 +149,10 @@ class FaceProblem:
         self._active_residual = compile_form(ufl.derivative(active_along_direction, self.u, v))
 
         self.cranium_blocks, self.mandible_blocks = self._bone_dof_blocks()
-        self._dof_coordinates = self.V.tabulate_dof_coordinates()[:, :3]
+        self.dof_coordinates = self.V.tabulate_dof_coordinates()[:, :3]
         self.bone_displacement = fem.Function(self.V, name="bone_displacement")
-        self.bcs = [fem.dirichletbc(self.bone_displacement,
-                                    np.concatenate([self.cranium_blocks, self.mandible_blocks]))]
+        self.bone_blocks = np.concatenate([self.cranium_blocks, self.mandible_blocks])
+        self.bcs = [fem.dirichletbc(self.bone_displacement, self.bone_blocks)]
         self.solver = QuasistaticSolver(residual, self.u, self.bcs, energy=energy,
                                         petsc_options=petsc_options)
         self.controls = Controls(np.zeros(self.num_muscles), AffineMap(), AffineMap())
@@ -197,20 +197,24 @@ class FaceProblem:
         for k, target in enumerate(targets):
             target.x.array[:] = padded[self.slots.muscle_of_slot[k]]
 
+    def bone_positions(self, cranium: AffineMap, jaw: AffineMap) -> np.ndarray:
+        """World positions of the bone-attached dofs (``bone_blocks`` order) for bone frames."""
+        X = self.dof_coordinates
+        on_cranium = cranium.apply(X[self.cranium_blocks])
+        on_mandible = cranium.compose(jaw).apply(X[self.mandible_blocks])
+        return np.concatenate([on_cranium, on_mandible])
+
     def _set_controls(self, controls: Controls) -> None:
         self._scatter(controls.activations, self.slots.activation)
-        X = self._dof_coordinates
         values = self.bone_displacement.x.array.reshape(-1, 3)
-        cranium_blocks, mandible_blocks = self.cranium_blocks, self.mandible_blocks
-        values[cranium_blocks] = controls.cranium.apply(X[cranium_blocks]) - X[cranium_blocks]
-        jaw_in_world = controls.cranium.compose(controls.jaw)
-        values[mandible_blocks] = jaw_in_world.apply(X[mandible_blocks]) - X[mandible_blocks]
+        values[self.bone_blocks] = (self.bone_positions(controls.cranium, controls.jaw)
+                                    - self.dof_coordinates[self.bone_blocks])
         self.controls = controls
 
     def _move_rigidly(self, old: AffineMap, new: AffineMap) -> None:
         """Carry the current shape along a change of the cranium frame (exact for rigid motion)."""
         change = new.compose(old.inverse())
-        X = self._dof_coordinates
+        X = self.dof_coordinates
         values = self.u.x.array.reshape(-1, 3)
         values[:] = change.apply(X + values) - X
 

@@ -1,0 +1,114 @@
+"""Derivatives of the equilibrium shape with respect to the controls (sifakis2005 section 6).
+
+At an equilibrium f(X(c), c) = 0, with K the tangent (identity rows on Dirichlet dofs):
+  activations       K dX/da_i = f_i                                   (eq. 5)
+  bone-driven b_i   K dX/db_i = -K_UC dX^C/db_i, and dX^C/db_i on C   (eq. 6, by lifting)
+  cranium frame     dX/db_i = (dM_c/db_i) y + dt_c/db_i,  y = M_c^-1 (x - t_c)   (analytic)
+One factorisation of K serves every right-hand side.
+"""
+from petsc4py import PETSc
+import numpy as np
+from dolfinx import fem
+import dolfinx.fem.petsc as fem_petsc
+
+from .solver import DEFAULT_PETSC_OPTIONS
+
+LINEAR_SOLVER_OPTIONS = {k: v for k, v in DEFAULT_PETSC_OPTIONS.items() if not k.startswith("snes_")}
+
+
+class EquilibriumSensitivity:
+    """Columns of dX/dc at the problem's current equilibrium, as local dof arrays."""
+
+    def __init__(self, problem, petsc_options: dict | None = None,
+                 options_prefix: str = "face_sensitivity_"):
+        self.problem = problem
+        self.tangent = fem_petsc.create_matrix(problem.solver.jacobian_form)
+        self.tangent.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        self.ksp = PETSc.KSP().create(problem.comm)
+        self.ksp.setOptionsPrefix(options_prefix)
+        opts = PETSc.Options()
+        for key, value in {**LINEAR_SOLVER_OPTIONS, **(petsc_options or {})}.items():
+            if not opts.hasName(options_prefix + key):
+                opts[options_prefix + key] = value
+        self.ksp.setFromOptions()
+        self._rhs = problem.u.vector.duplicate()
+        self._solution = problem.u.vector.duplicate()
+        self._lift = fem.Function(problem.V)
+        self._lift_bc = fem.dirichletbc(self._lift, problem.bone_blocks)
+
+    def factor(self) -> None:
+        """Assemble and factorise the tangent at the current shape."""
+        K = self.tangent
+        K.zeroEntries()
+        fem_petsc.assemble_matrix(K, self.problem.solver.jacobian_form, bcs=self.problem.bcs)
+        K.assemble()
+        self.ksp.setOperators(K)
+        self.ksp.setUp()
+
+    def _solve(self) -> np.ndarray:
+        self.ksp.solve(self._rhs, self._solution)
+        self._solution.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        with self._solution.localForm() as local:
+            return local.array.copy()
+
+    def activation_columns(self, muscles=None) -> np.ndarray:
+        """dX/da_i for the given muscles (default all): (k, local dofs incl. ghosts)."""
+        muscles = range(self.problem.num_muscles) if muscles is None else muscles
+        columns = []
+        for i in muscles:
+            self.problem.active_force(i, out=self._rhs)
+            columns.append(self._solve())
+        return np.array(columns).reshape(len(columns), -1)
+
+    def boundary_columns(self, bone_derivatives: np.ndarray) -> np.ndarray:
+        """dX/db for parameters that move the bone-attached nodes non-rigidly (the jaw).
+
+        ``bone_derivatives`` (k, num bone blocks, 3): dX^C/db_i at ``problem.bone_blocks``.
+        """
+        columns = []
+        jacobian_form = self.problem.solver.jacobian_form
+        for derivative in bone_derivatives:
+            values = self._lift.x.array.reshape(-1, 3)
+            values[:] = 0.0
+            values[self.problem.bone_blocks] = derivative
+            with self._rhs.localForm() as local:
+                local.set(0.0)
+            fem_petsc.apply_lifting(self._rhs, [jacobian_form], bcs=[[self._lift_bc]])
+            self._rhs.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            fem_petsc.set_bc(self._rhs, [self._lift_bc])
+            columns.append(self._solve())
+        return np.array(columns).reshape(len(columns), -1)
+
+    def cranium_columns(self) -> np.ndarray:
+        """dX/d(M_c, t_c) for the 12 affine numbers (row-major M, then t), analytic.
+
+        Exact when M_c is a rotation: the whole equilibrium then moves with the cranium frame.
+        """
+        problem = self.problem
+        X = problem.dof_coordinates
+        x = X + problem.u.x.array.reshape(-1, 3)
+        cranium = problem.controls.cranium
+        y = (x - cranium.translation) @ np.linalg.inv(cranium.matrix).T
+        columns = np.zeros((12,) + x.shape)
+        for i in range(3):
+            for j in range(3):
+                columns[3 * i + j][:, i] = y[:, j]
+            columns[9 + i][:, i] = 1.0
+        return columns.reshape(12, -1)
+
+
+def bone_position_derivatives(problem, pose_of, params: np.ndarray, step: float) -> np.ndarray:
+    """dX^C/dp_i at the bone blocks for a bone pose ``pose_of(p) -> (cranium, jaw)``.
+
+    Central differences; exact (up to round-off) for poses affine in p, such as the 12 numbers of
+    an affine jaw frame, where any ``step`` will do; for the TMJ angles use a small step.
+    """
+    params = np.asarray(params, dtype=float)
+    derivatives = []
+    for i in range(len(params)):
+        bump = np.zeros_like(params)
+        bump[i] = step
+        forward = problem.bone_positions(*pose_of(params + bump))
+        backward = problem.bone_positions(*pose_of(params - bump))
+        derivatives.append((forward - backward) / (2 * step))
+    return np.array(derivatives)
