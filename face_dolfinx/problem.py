@@ -12,6 +12,7 @@ fiber terms whatever the number of muscles; activations are scattered into the s
 """
 from dataclasses import dataclass
 import logging
+import time
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -220,14 +221,30 @@ class FaceProblem:
 
     # -- solving -----------------------------------------------------------------------------
     def solve(self, activations=None, cranium: AffineMap | None = None,
-              jaw: AffineMap | None = None) -> SolveReport:
-        """Equilibrium for the given controls (unspecified ones keep their values), starting from
-        the current equilibrium; falls back to continuation when Newton fails."""
+              jaw: AffineMap | None = None, guess: np.ndarray | None = None) -> SolveReport:
+        """Equilibrium for the given controls (unspecified ones keep their values).
+
+        Newton starts from ``guess`` (a dof array, e.g. the Gauss-Newton prediction X + dX/dc dc)
+        if given, else from the current equilibrium carried along the change of the cranium
+        frame. If that fails, continuation from the current equilibrium takes over.
+        """
         start = self.controls.copy()
         target = Controls(
             self.activation_vector(activations) if activations is not None else start.activations,
             cranium if cranium is not None else start.cranium,
             jaw if jaw is not None else start.jaw)
+        if guess is not None:
+            began = time.perf_counter()
+            equilibrium = self.u.x.array.copy()
+            self.u.x.array[:] = guess
+            self._set_controls(target)
+            ok, iterations, why = self.solver.newton()
+            if ok:
+                return SolveReport(True, iterations, 1, why, time.perf_counter() - began)
+            log.info("Newton from the predicted shape failed (%s); continuing from the last "
+                     "equilibrium", why)
+            self.u.x.array[:] = equilibrium
+            self._set_controls(start)
 
         def set_controls(t):
             self._set_controls(start.interpolate(target, t))

@@ -48,8 +48,13 @@ def slab_model(cells=(8, 4, 2), comm=MPI.COMM_WORLD):
             raise KeyError(f"unknown muscle {name!r}; known: {', '.join(names)}")
         return names.index(name)
 
+    # A TMJ for the slab: condyles on the far end's edge, sliding along +x; w = v x u = +z and
+    # opening turns the end towards -w.
+    jaw = SimpleNamespace(u=np.array([0.0, 1.0, 0.0]), v=np.array([1.0, 0.0, 0.0]),
+                          w=np.array([0.0, 0.0, 1.0]), midpoint=np.array([40.0, 10.0, 5.0]),
+                          condyle_distance=20.0, track_length=5.0, max_opening_sine=0.5)
     return SimpleNamespace(
-        path="<slab>", name="slab", mesh=domain, facet_tags=tags,
+        path="<slab>", jaw=jaw, name="slab", mesh=domain, facet_tags=tags,
         boundary_ids={"cranium": CRANIUM, "mandible": MANDIBLE}, muscles=muscles,
         material={"mu10": 6.0, "mu01": 2.0, "kappa": 60.0, "fiber_stress": 30.0},
         muscle_names=names, muscle_index=muscle_index)

@@ -6,6 +6,7 @@ error per column <= 1e-5 (the issue's bound), serial and under mpirun -n 2.
 """
 from types import SimpleNamespace
 
+from mpi4py import MPI
 import numpy as np
 import pytest
 
@@ -17,10 +18,7 @@ from slab import slab_model
 
 MARKERS = np.array([[8.0, 4.0, 10.0], [20.0, 10.0, 10.0], [31.0, 15.0, 10.0], [15.0, 20.0, 6.0],
                     [25.0, 0.0, 3.0], [36.0, 9.0, 10.0]])
-# A TMJ for the slab: condyles on the far end's edge, sliding along +x.
-SLAB_JAW = SimpleNamespace(u=np.array([0.0, 1.0, 0.0]), v=np.array([1.0, 0.0, 0.0]),
-                           w=np.array([0.0, 0.0, -1.0]), midpoint=np.array([40.0, 10.0, 5.0]),
-                           condyle_distance=20.0)
+SLAB_JAW = slab_model(comm=MPI.COMM_SELF).jaw
 ACTIVATIONS = np.array([0.6, 0.3, 0.8])
 CRANIUM = rigid_map(rotation([0.3, 1.0, 0.2], 0.4), [0, 10, 5], [2.0, -1.0, 3.0])
 TMJ = np.array([0.15, 1.0, 2.0])  # opening angle (rad), right and left slides (mm)

@@ -1,0 +1,431 @@
+"""Gauss-Newton fitting of activations and bone motion to markers (sifakis2005 sections 5-9).
+
+Per frame, from the previous frame's equilibrium and controls:
+  1. factorise the tangent once, solve for dX/dc (activations, jaw) and add the analytic cranium
+     columns: the marker Jacobian J = W dX/dc;
+  2. the Gauss-Newton step minimises |r + J dc|^2 (r = simulated - captured markers present in
+     this frame) under the mode's constraints;
+  3. solve the equilibrium at the new controls from the linear prediction X + dX/dc dc; accept the
+     step when the objective drops, otherwise golden-section search along it (each trial starting
+     from the linear interpolation of the two shapes, as the paper does);
+  4. repeat until the relative decrease or the step is small.
+
+Two formulations share this driver:
+  ``exact``: activations with hard bounds [0, 1] (bounded linear least squares), the head a rigid
+    motion updated on the rotation group, the jaw its 3 TMJ degrees of freedom with hard bounds;
+  ``paper``: 32 activations + 12 affine cranium + 12 affine jaw numbers, with the nested penalty
+    schedule of section 7 (rho grows by 5 % per step) for the bounds, rigidity and TMJ terms.
+"""
+from dataclasses import dataclass, field
+import logging
+import math
+import time
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from forms import penalties
+from .bones import AffineMap, jaw_pose, rotation
+from .points import PointEvaluator
+from .sensitivity import EquilibriumSensitivity, bone_position_derivatives
+from .solver import EquilibriumError
+
+log = logging.getLogger(__name__)
+
+GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+TMJ_STEP = 1e-6  # central-difference step of the closed-form jaw pose (rad, mm)
+
+
+@dataclass
+class FitSettings:
+    mode: str = "exact"                 # "exact" or "paper"
+    max_gn_steps: int = 3               # per frame, warm-started
+    first_frame_gn_steps: int = 8       # from a remote initial guess
+    relative_decrease: float = 1e-3     # stop when the objective drops by less than this
+    min_step: float = 1e-5              # stop when the control step is smaller than this
+    line_search_depth: int = 6          # golden-section evaluations when the full step fails
+    temporal_smoothness: float = 0.0    # weight (mm^2 per unit activation^2) towards the last frame
+    fit_head: bool = True
+    fit_jaw: bool = True
+    penalty_growth: float = 1.05        # paper mode: rho_{i+1} = 1.05 rho_i
+    penalty_final_ratio: float = 1e6    # ... until rho = 1e6 phi(c)
+
+
+@dataclass
+class FrameResult:
+    frame: int
+    activations: np.ndarray
+    cranium: AffineMap
+    jaw: AffineMap
+    jaw_tmj: np.ndarray | None          # opening (rad), right and left slides (mm); exact mode
+    marker_errors: np.ndarray           # per marker (mm), NaN where missing
+    rms_error: float
+    max_error: float
+    gn_steps: int
+    seconds: float
+    phases: dict = field(default_factory=dict)
+    flag: str = ""                      # why this frame is doubtful or skipped ("" = fine)
+
+
+class MarkerSet:
+    """Markers at fixed material points of the face (plus an offset that turns with the head)."""
+
+    def __init__(self, problem, surface_points: np.ndarray, offsets: np.ndarray | None = None,
+                 names: list[str] | None = None):
+        self.reference = np.asarray(surface_points, dtype=float).reshape(-1, 3)
+        self.offsets = np.zeros_like(self.reference) if offsets is None else np.asarray(offsets, float)
+        self.names = names or [f"marker_{i}" for i in range(len(self.reference))]
+        self.evaluator = PointEvaluator(problem.V, self.reference)
+
+    def positions(self, displacement: np.ndarray, cranium: AffineMap) -> np.ndarray:
+        return self.reference + self.evaluator.values(displacement) + self.offsets @ cranium.matrix.T
+
+
+class ControlState:
+    """The controls of one formulation with their Jacobian columns, steps and bounds."""
+
+    def __init__(self, mode: str, activations, cranium: AffineMap, jaw: AffineMap, tmj=None):
+        self.mode = mode
+        self.activations = np.asarray(activations, dtype=float).copy()
+        self.cranium = cranium
+        self.jaw = jaw
+        self.tmj = None if tmj is None else np.asarray(tmj, dtype=float).copy()
+
+    def copy(self):
+        return ControlState(self.mode, self.activations, self.cranium, self.jaw, self.tmj)
+
+
+class FaceFitter:
+    """Fits frames of marker targets with a ``FaceProblem``; keeps the last equilibrium."""
+
+    def __init__(self, problem, markers: MarkerSet, settings: FitSettings | None = None):
+        self.problem = problem
+        self.markers = markers
+        self.settings = settings or FitSettings()
+        if self.settings.mode not in ("exact", "paper"):
+            raise ValueError(f"unknown fitting mode {self.settings.mode!r}: use 'exact' or 'paper'")
+        self.sensitivity = EquilibriumSensitivity(problem)
+        self.jaw_geometry = problem.model.jaw
+        n = problem.num_muscles
+        tmj = np.zeros(3) if self.settings.mode == "exact" else None
+        self.state = ControlState(self.settings.mode, np.zeros(n), AffineMap(), AffineMap(), tmj)
+        self.previous_activations = None
+        self.frames_done = 0
+
+    # -- controls <-> problem -----------------------------------------------------------------
+    def _jaw_of(self, state: ControlState) -> AffineMap:
+        if state.mode == "exact":
+            return jaw_pose(self.jaw_geometry, *state.tmj)
+        return state.jaw
+
+    def _equilibrium(self, state: ControlState, guess: np.ndarray | None) -> None:
+        self.problem.solve(activations=np.clip(state.activations, 0.0, 1.0),
+                           cranium=state.cranium, jaw=self._jaw_of(state), guess=guess)
+
+    def _objective(self, state: ControlState, targets, present) -> tuple[float, np.ndarray]:
+        simulated = self.markers.positions(self.problem.u.x.array, state.cranium)
+        residual = (simulated - targets)[present]
+        value = float(np.sum(residual**2))
+        if self.settings.temporal_smoothness and self.previous_activations is not None:
+            value += self.settings.temporal_smoothness * float(
+                np.sum((state.activations - self.previous_activations) ** 2))
+        if state.mode == "paper":
+            value += self._rho_final * self._penalty(state).value
+        return value, simulated
+
+    # -- Jacobian -----------------------------------------------------------------------------
+    def _columns(self, state: ControlState) -> tuple[np.ndarray, np.ndarray, float]:
+        """dX/dc as dof arrays (k, ndofs), the marker Jacobian (k, markers, 3) and the time."""
+        start = time.perf_counter()
+        self.sensitivity.factor()
+        columns = [self.sensitivity.activation_columns()]
+        cranium_marker_columns = None
+        if self.settings.fit_head:
+            cranium_dofs = self.sensitivity.cranium_columns()
+            cranium_marker = self._cranium_marker_columns(state)
+            if state.mode == "exact":
+                # Rotation about the origin (3, on the group: M <- exp([w]) M) and translation (3).
+                generators = [_cross_matrix(e) for e in np.eye(3)]
+                combine = np.zeros((6, 12))
+                for k, G in enumerate(generators):
+                    combine[k, :9] = (G @ state.cranium.matrix).reshape(-1)
+                    combine[k, 9:] = G @ state.cranium.translation
+                combine[3:, 9:] = np.eye(3)
+                cranium_dofs = combine @ cranium_dofs
+                cranium_marker = np.tensordot(combine, cranium_marker, axes=1)
+            columns.append(cranium_dofs)
+            cranium_marker_columns = cranium_marker
+        if self.settings.fit_jaw:
+            if state.mode == "exact":
+                pose = lambda p: (state.cranium, jaw_pose(self.jaw_geometry, *p))  # noqa: E731
+                derivatives = bone_position_derivatives(self.problem, pose, state.tmj, TMJ_STEP)
+            else:
+                params = np.concatenate([state.jaw.matrix.reshape(-1), state.jaw.translation])
+                pose = lambda p: (state.cranium, AffineMap(p[:9], p[9:]))  # noqa: E731
+                derivatives = bone_position_derivatives(self.problem, pose, params, 1.0)
+            columns.append(self.sensitivity.boundary_columns(derivatives))
+        dofs = np.concatenate(columns)
+        marker = self.markers.evaluator.values_many(dofs)
+        if cranium_marker_columns is not None:
+            n = self.problem.num_muscles
+            marker[n:n + len(cranium_marker_columns)] = cranium_marker_columns
+        return dofs, marker, time.perf_counter() - start
+
+    def _cranium_marker_columns(self, state: ControlState) -> np.ndarray:
+        """d(marker)/d(M_c, t_c) (12, markers, 3): the whole face, offsets included, moves
+        with the cranium frame."""
+        x = self.markers.positions(self.problem.u.x.array, state.cranium)
+        y = (x - state.cranium.translation) @ np.linalg.inv(state.cranium.matrix).T
+        columns = np.zeros((12,) + x.shape)
+        for i in range(3):
+            for j in range(3):
+                columns[3 * i + j][:, i] = y[:, j]
+            columns[9 + i][:, i] = 1.0
+        return columns
+
+    # -- steps --------------------------------------------------------------------------------
+    def _layout(self):
+        n = self.problem.num_muscles
+        head = (6 if self.settings.mode == "exact" else 12) if self.settings.fit_head else 0
+        jaw = (3 if self.settings.mode == "exact" else 12) if self.settings.fit_jaw else 0
+        return n, head, jaw
+
+    def _gn_step(self, state: ControlState, jacobian: np.ndarray, residual: np.ndarray) -> np.ndarray:
+        """The control step: bounded least squares (exact) or the nested penalty loop (paper)."""
+        n, head, jaw = self._layout()
+        A = jacobian.reshape(len(jacobian), -1).T  # (3 markers, controls)
+        b = -residual.reshape(-1)
+        w = self.settings.temporal_smoothness
+        if w and self.previous_activations is not None:
+            rows = np.zeros((n, A.shape[1]))
+            rows[:, :n] = math.sqrt(w) * np.eye(n)
+            A = np.vstack([A, rows])
+            b = np.concatenate([b, -math.sqrt(w) * (state.activations - self.previous_activations)])
+        if state.mode == "exact":
+            lower = np.full(A.shape[1], -np.inf)
+            upper = np.full(A.shape[1], np.inf)
+            lower[:n], upper[:n] = -state.activations, 1.0 - state.activations
+            if jaw:
+                geometry = self.jaw_geometry
+                limits_low = np.array([0.0, 0.0, 0.0])
+                limits_high = np.array([math.asin(geometry.max_opening_sine), geometry.track_length,
+                                        geometry.track_length])
+                lower[n + head:] = limits_low - state.tmj
+                upper[n + head:] = limits_high - state.tmj
+            # Round-off can put a control a hair outside its bounds; the step may not be infeasible.
+            upper = np.maximum(upper, lower)
+            scale = np.maximum(np.linalg.norm(A, axis=0), 1e-12)  # column scaling: mm vs rad vs 1
+            result = lsq_linear(A / scale, b, bounds=(lower * scale, upper * scale),
+                                method="bvls", tol=1e-12)
+            return result.x / scale
+        return self._nested_penalty_step(state, A, b)
+
+    def _paper_vector(self, state: ControlState) -> np.ndarray:
+        n, head, jaw = self._layout()
+        parts = [state.activations]
+        if head:
+            parts += [state.cranium.matrix.reshape(-1), state.cranium.translation]
+        if jaw:
+            parts += [state.jaw.matrix.reshape(-1), state.jaw.translation]
+        return np.concatenate(parts)
+
+    def _penalty(self, state: ControlState) -> penalties.PenaltyValue:
+        """phi_p on the fitted controls (fixed frames contribute nothing)."""
+        n, head, jaw = self._layout()
+        full = np.concatenate([state.activations, state.cranium.matrix.reshape(-1),
+                               state.cranium.translation, state.jaw.matrix.reshape(-1),
+                               state.jaw.translation])
+        value = penalties.kinematic_and_bounds(full, n, self.jaw_geometry)
+        keep = np.concatenate([np.arange(n), np.arange(n, n + 12) if head else [],
+                               np.arange(n + 12, n + 24) if jaw else []]).astype(int)
+        return penalties.PenaltyValue(value.value, value.gradient[keep],
+                                      value.hessian[np.ix_(keep, keep)])
+
+    def _state_from_paper_vector(self, template: ControlState, c: np.ndarray) -> ControlState:
+        n, head, jaw = self._layout()
+        state = template.copy()
+        state.activations = c[:n].copy()
+        offset = n
+        if head:
+            state.cranium = AffineMap(c[offset:offset + 9], c[offset + 9:offset + 12])
+            offset += 12
+        if jaw:
+            state.jaw = AffineMap(c[offset:offset + 9], c[offset + 9:offset + 12])
+        return state
+
+    def _nested_penalty_step(self, state: ControlState, A: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Section 7: minimise |A dc - b|^2 + rho_i phi_p(c + dc) for growing rho_i (Newton)."""
+        c0 = self._paper_vector(state)
+        phi = float(b @ b)
+        rho = max(self._rho_start, 1e-12)
+        rho_final = max(self.settings.penalty_final_ratio * phi, rho)
+        self._rho_final = rho_final
+        AtA, Atb = A.T @ A, A.T @ b
+        dc = np.zeros_like(c0)
+        while True:
+            p = self._penalty(self._state_from_paper_vector(state, c0 + dc))
+            gradient = 2.0 * (AtA @ dc - Atb) + rho * p.gradient
+            hessian = 2.0 * AtA + rho * p.hessian
+            dc -= np.linalg.lstsq(hessian, gradient, rcond=1e-12)[0]
+            if rho >= rho_final:
+                return dc
+            rho = min(rho * self.settings.penalty_growth, rho_final)
+
+    def _retract(self, state: ControlState, step: np.ndarray) -> ControlState:
+        if state.mode == "paper":
+            return self._state_from_paper_vector(state, self._paper_vector(state) + step)
+        n, head, jaw = self._layout()
+        new = state.copy()
+        new.activations = np.clip(state.activations + step[:n], 0.0, 1.0)
+        if head:
+            spin = rotation(step[n:n + 3], np.linalg.norm(step[n:n + 3])) if np.any(step[n:n + 3]) else np.eye(3)
+            new.cranium = AffineMap(spin @ state.cranium.matrix,
+                                    spin @ state.cranium.translation + step[n + 3:n + 6])
+        if jaw:
+            new.tmj = state.tmj + step[n + head:n + head + 3]
+        return new
+
+    def _interpolate(self, a: ControlState, b: ControlState, t: float) -> ControlState:
+        new = a.copy()
+        new.activations = (1 - t) * a.activations + t * b.activations
+        new.jaw = a.jaw.interpolate(b.jaw, t)
+        if a.mode == "exact":
+            new.tmj = (1 - t) * a.tmj + t * b.tmj
+            relative = b.cranium.matrix @ a.cranium.matrix.T
+            axis, angle = _axis_angle(relative)
+            spin = rotation(axis, t * angle) if angle else np.eye(3)
+            new.cranium = AffineMap(spin @ a.cranium.matrix,
+                                    (1 - t) * a.cranium.translation + t * b.cranium.translation)
+        else:
+            new.cranium = a.cranium.interpolate(b.cranium, t)
+        return new
+
+    # -- one frame ----------------------------------------------------------------------------
+    def fit_frame(self, targets: np.ndarray, frame: int = 0, max_steps: int | None = None) -> FrameResult:
+        """Fit one frame of targets (markers, 3) with NaN rows for missing markers."""
+        start = time.perf_counter()
+        settings = self.settings
+        targets = np.asarray(targets, dtype=float)
+        present = np.all(np.isfinite(targets), axis=1)
+        if max_steps is None:
+            max_steps = settings.first_frame_gn_steps if self.frames_done == 0 else settings.max_gn_steps
+        phases = dict(sensitivities=0.0, gn_solve=0.0, equilibrium=0.0, line_search=0.0)
+        flag = self._frame_flag(present)
+        if flag:
+            return self._result(frame, targets, present, 0, start, phases, flag)
+
+        state = self.state
+        if state.mode == "paper":
+            spread = np.nanstd(targets[present]) if present.any() else 1.0
+            self._rho_start = 1e-6 * spread**2
+            self._rho_final = self._rho_start
+        objective, _ = self._objective(state, targets, present)
+        steps = 0
+        for steps in range(1, max_steps + 1):
+            base_u = self.problem.u.x.array.copy()
+            dofs, marker_columns, seconds = self._columns(state)
+            phases["sensitivities"] += seconds
+            t0 = time.perf_counter()
+            simulated = self.markers.positions(base_u, state.cranium)
+            residual = np.where(present[:, None], simulated - np.nan_to_num(targets), 0.0)
+            jac = marker_columns * present[None, :, None]
+            step = self._gn_step(state, jac, residual)
+            phases["gn_solve"] += time.perf_counter() - t0
+            if state.mode == "paper":
+                objective, _ = self._objective(state, targets, present)  # rho changed
+            candidate = self._retract(state, step)
+            t0 = time.perf_counter()
+            guess = base_u + step @ dofs[:len(step)]
+            try:
+                self._equilibrium(candidate, guess)
+                candidate_objective, _ = self._objective(candidate, targets, present)
+            except EquilibriumError:
+                candidate_objective = math.inf
+            phases["equilibrium"] += time.perf_counter() - t0
+            if candidate_objective < objective:
+                accepted, new_objective = candidate, candidate_objective
+            else:
+                t0 = time.perf_counter()
+                accepted, new_objective = self._line_search(state, candidate, base_u, targets, present,
+                                                            objective)
+                phases["line_search"] += time.perf_counter() - t0
+            if accepted is None:  # no decrease along the step: converged or stuck
+                self.problem.u.x.array[:] = base_u
+                self._equilibrium(state, base_u)
+                break
+            decrease = (objective - new_objective) / max(objective, 1e-300)
+            state, objective = accepted, new_objective
+            if decrease < settings.relative_decrease or np.linalg.norm(step) < settings.min_step:
+                break
+        self.state = state
+        self.previous_activations = state.activations.copy()
+        self.frames_done += 1
+        return self._result(frame, targets, present, steps, start, phases, "")
+
+    def _line_search(self, state, candidate, base_u, targets, present, objective):
+        """Golden-section search for t in (0, 1) along the step; None if nothing improves."""
+        candidate_u = self.problem.u.x.array.copy()
+        best = (objective, None, None)
+
+        def evaluate(t):
+            nonlocal best
+            trial = self._interpolate(state, candidate, t)
+            guess = (1 - t) * base_u + t * candidate_u
+            try:
+                self._equilibrium(trial, guess)
+            except EquilibriumError:
+                return math.inf
+            value, _ = self._objective(trial, targets, present)
+            if value < best[0]:
+                best = (value, trial, self.problem.u.x.array.copy())
+            return value
+
+        low, high = 0.0, 1.0
+        x1, x2 = high - GOLDEN * (high - low), low + GOLDEN * (high - low)
+        f1, f2 = evaluate(x1), evaluate(x2)
+        for _ in range(max(0, self.settings.line_search_depth - 2)):
+            if f1 < f2:
+                high, x2, f2 = x2, x1, f1
+                x1 = high - GOLDEN * (high - low)
+                f1 = evaluate(x1)
+            else:
+                low, x1, f1 = x1, x2, f2
+                x2 = low + GOLDEN * (high - low)
+                f2 = evaluate(x2)
+        value, trial, u = best
+        if trial is None:
+            return None, objective
+        self.problem.u.x.array[:] = u
+        self._equilibrium(trial, u)  # controls and Dirichlet values of the chosen point
+        return trial, value
+
+    def _frame_flag(self, present: np.ndarray) -> str:
+        usable = int(present.sum())
+        if usable == 0:
+            return "every marker is missing in this frame"
+        if self.settings.fit_head and usable < 3:
+            return f"only {usable} marker(s) present: fewer than the 3 a rigid head motion needs"
+        return ""
+
+    def _result(self, frame, targets, present, steps, start, phases, flag) -> FrameResult:
+        state = self.state
+        simulated = self.markers.positions(self.problem.u.x.array, state.cranium)
+        errors = np.where(present, np.linalg.norm(simulated - np.nan_to_num(targets), axis=1), np.nan)
+        rms = float(np.sqrt(np.nanmean(errors**2))) if present.any() else math.nan
+        worst = float(np.nanmax(errors)) if present.any() else math.nan
+        return FrameResult(frame, state.activations.copy(), state.cranium, self._jaw_of(state),
+                           None if state.tmj is None else state.tmj.copy(), errors, rms, worst, steps,
+                           time.perf_counter() - start, phases, flag)
+
+
+def _cross_matrix(axis: np.ndarray) -> np.ndarray:
+    x, y, z = axis
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def _axis_angle(R: np.ndarray) -> tuple[np.ndarray, float]:
+    angle = math.acos(max(-1.0, min(1.0, (np.trace(R) - 1.0) / 2.0)))
+    if angle < 1e-14:
+        return np.array([1.0, 0.0, 0.0]), 0.0
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return axis / np.linalg.norm(axis), angle
