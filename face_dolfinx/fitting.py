@@ -47,6 +47,7 @@ class FitSettings:
     temporal_smoothness: float = 0.0    # weight (mm^2 per unit activation^2) towards the last frame
     fit_head: bool = True
     fit_jaw: bool = True
+    reuse_jacobian: bool = True         # first step of a frame: the last frame's J, turned with the head
     penalty_growth: float = 1.05        # paper mode: rho_{i+1} = 1.05 rho_i
     penalty_final_ratio: float = 1e6    # ... until rho = 1e6 phi(c)
 
@@ -65,6 +66,7 @@ class FrameResult:
     seconds: float
     phases: dict = field(default_factory=dict)
     flag: str = ""                      # why this frame is doubtful or skipped ("" = fine)
+    initial_rms: float = math.nan       # marker RMS error of the warm start, before fitting
 
 
 class MarkerSet:
@@ -111,6 +113,7 @@ class FaceFitter:
         self.state = ControlState(self.settings.mode, np.zeros(n), AffineMap(), AffineMap(), tmj)
         self.previous_activations = None
         self.frames_done = 0
+        self._cached_jacobian = None  # (state, dof columns, marker columns) of the last GN step
 
     # -- controls <-> problem -----------------------------------------------------------------
     def _jaw_of(self, state: ControlState) -> AffineMap:
@@ -144,13 +147,7 @@ class FaceFitter:
             cranium_dofs = self.sensitivity.cranium_columns()
             cranium_marker = self._cranium_marker_columns(state)
             if state.mode == "exact":
-                # Rotation about the origin (3, on the group: M <- exp([w]) M) and translation (3).
-                generators = [_cross_matrix(e) for e in np.eye(3)]
-                combine = np.zeros((6, 12))
-                for k, G in enumerate(generators):
-                    combine[k, :9] = (G @ state.cranium.matrix).reshape(-1)
-                    combine[k, 9:] = G @ state.cranium.translation
-                combine[3:, 9:] = np.eye(3)
+                combine = _exact_head_combination(state.cranium)
                 cranium_dofs = combine @ cranium_dofs
                 cranium_marker = np.tensordot(combine, cranium_marker, axes=1)
             columns.append(cranium_dofs)
@@ -169,6 +166,25 @@ class FaceFitter:
         if cranium_marker_columns is not None:
             n = self.problem.num_muscles
             marker[n:n + len(cranium_marker_columns)] = cranium_marker_columns
+        return dofs, marker, time.perf_counter() - start
+
+    def _reused_columns(self, state: ControlState):
+        """The cached Jacobian turned by the change of the head's rotation since it was computed
+        (the paper's warm start), with fresh analytic cranium columns."""
+        start = time.perf_counter()
+        cached_state, dofs, marker = self._cached_jacobian
+        turn = state.cranium.matrix @ np.linalg.inv(cached_state.cranium.matrix)
+        dofs = (dofs.reshape(len(dofs), -1, 3) @ turn.T).reshape(len(dofs), -1)
+        marker = marker @ turn.T
+        if self.settings.fit_head:
+            n, head, _ = self._layout()
+            cranium = self._cranium_marker_columns(state)
+            cranium_dofs = self.sensitivity.cranium_columns()
+            if state.mode == "exact":
+                combine = _exact_head_combination(state.cranium)
+                cranium, cranium_dofs = np.tensordot(combine, cranium, axes=1), combine @ cranium_dofs
+            marker[n:n + head] = cranium
+            dofs[n:n + head] = cranium_dofs
         return dofs, marker, time.perf_counter() - start
 
     def _cranium_marker_columns(self, state: ControlState) -> np.ndarray:
@@ -319,11 +335,18 @@ class FaceFitter:
             spread = np.nanstd(targets[present]) if present.any() else 1.0
             self._rho_start = 1e-6 * spread**2
             self._rho_final = self._rho_start
-        objective, _ = self._objective(state, targets, present)
+        objective, simulated = self._objective(state, targets, present)
+        initial_rms = float(np.sqrt(np.mean(np.sum((simulated - targets)[present] ** 2, axis=1))))
+        fresh = not (settings.reuse_jacobian and self._cached_jacobian is not None)
         steps = 0
-        for steps in range(1, max_steps + 1):
+        while steps < max_steps:
+            steps += 1
             base_u = self.problem.u.x.array.copy()
-            dofs, marker_columns, seconds = self._columns(state)
+            if fresh:
+                dofs, marker_columns, seconds = self._columns(state)
+                self._cached_jacobian = (state.copy(), dofs, marker_columns)
+            else:
+                dofs, marker_columns, seconds = self._reused_columns(state)
             phases["sensitivities"] += seconds
             t0 = time.perf_counter()
             simulated = self.markers.positions(base_u, state.cranium)
@@ -349,18 +372,23 @@ class FaceFitter:
                 accepted, new_objective = self._line_search(state, candidate, base_u, targets, present,
                                                             objective)
                 phases["line_search"] += time.perf_counter() - t0
-            if accepted is None:  # no decrease along the step: converged or stuck
+            if accepted is None:  # no decrease along the step: converged, stuck, or a stale J
                 self.problem.u.x.array[:] = base_u
                 self._equilibrium(state, base_u)
+                if not fresh:
+                    fresh = True
+                    continue
                 break
             decrease = (objective - new_objective) / max(objective, 1e-300)
-            state, objective = accepted, new_objective
+            state, objective, fresh = accepted, new_objective, True
             if decrease < settings.relative_decrease or np.linalg.norm(step) < settings.min_step:
                 break
         self.state = state
         self.previous_activations = state.activations.copy()
         self.frames_done += 1
-        return self._result(frame, targets, present, steps, start, phases, "")
+        result = self._result(frame, targets, present, steps, start, phases, "")
+        result.initial_rms = initial_rms
+        return result
 
     def _line_search(self, state, candidate, base_u, targets, present, objective):
         """Golden-section search for t in (0, 1) along the step; None if nothing improves."""
@@ -418,6 +446,18 @@ class FaceFitter:
                            time.perf_counter() - start, phases, flag)
 
 
+def _exact_head_combination(cranium: AffineMap) -> np.ndarray:
+    """(6, 12): exact-mode head controls (rotation about the origin on the group,
+    M <- exp([w]) M, t <- exp([w]) t, then translation) in terms of the 12 affine numbers."""
+    combine = np.zeros((6, 12))
+    for k, axis in enumerate(np.eye(3)):
+        G = _cross_matrix(axis)
+        combine[k, :9] = (G @ cranium.matrix).reshape(-1)
+        combine[k, 9:] = G @ cranium.translation
+    combine[3:, 9:] = np.eye(3)
+    return combine
+
+
 def _cross_matrix(axis: np.ndarray) -> np.ndarray:
     x, y, z = axis
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
@@ -429,3 +469,23 @@ def _axis_angle(R: np.ndarray) -> tuple[np.ndarray, float]:
         return np.array([1.0, 0.0, 0.0]), 0.0
     axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     return axis / np.linalg.norm(axis), angle
+
+
+def chunk_ranges(n_frames: int, n_chunks: int) -> list[range]:
+    """Split frames 0..n-1 into ``n_chunks`` contiguous, nearly equal ranges (none empty)."""
+    n_chunks = max(1, min(n_chunks, n_frames))
+    edges = np.linspace(0, n_frames, n_chunks + 1).round().astype(int)
+    return [range(a, b) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def track(fitter: FaceFitter, positions: np.ndarray, frames=None, on_frame=None) -> list[FrameResult]:
+    """Fit ``frames`` of ``positions`` (frames, markers, 3) in order, each warm-started from the
+    last; ``on_frame(result)`` is called as soon as a frame is done (e.g. to write it to disk)."""
+    frames = range(len(positions)) if frames is None else frames
+    results = []
+    for frame in frames:
+        result = fitter.fit_frame(positions[frame], frame=frame)
+        results.append(result)
+        if on_frame is not None:
+            on_frame(result)
+    return results

@@ -37,7 +37,9 @@ def slab_model(cells=(8, 4, 2), comm=MPI.COMM_WORLD):
                                fraction=np.full(len(cells), fraction), fiber=fiber)
 
     muscles = [
-        muscle("long", lambda x: np.abs(x[:, 1] - 10) < 6, [1, 0, 0], 0.8),
+        # Inserting in free flesh short of the far end: a muscle clamped at both ends would pull
+        # against the bones only, leaving no visible motion (its activation unobservable).
+        muscle("long", lambda x: (np.abs(x[:, 1] - 10) < 6) & (x[:, 0] < 28), [1, 0, 0], 0.8),
         muscle("across", lambda x: np.abs(x[:, 0] - 20) < 8, [0, 1, 0], 0.6),
         muscle("diagonal", lambda x: np.abs(x[:, 0] - x[:, 1] - 10) < 6, [1, 1, 0.2], 0.5),
     ]
