@@ -47,6 +47,7 @@ class FitSettings:
     temporal_smoothness: float = 0.0    # weight (mm^2 per unit activation^2) towards the last frame
     fit_head: bool = True
     fit_jaw: bool = True
+    unreachable_rms: float = 3.0        # mm: a frame fitted worse than this is flagged
     reuse_jacobian: bool = True         # first step of a frame: the last frame's J, turned with the head
     penalty_growth: float = 1.05        # paper mode: rho_{i+1} = 1.05 rho_i
     penalty_final_ratio: float = 1e6    # ... until rho = 1e6 phi(c)
@@ -388,6 +389,9 @@ class FaceFitter:
         self.frames_done += 1
         result = self._result(frame, targets, present, steps, start, phases, "")
         result.initial_rms = initial_rms
+        if result.rms_error > settings.unreachable_rms:
+            result.flag = (f"targets not reachable: marker RMS {result.rms_error:.2f} mm after "
+                           f"{steps} Gauss-Newton steps (threshold {settings.unreachable_rms} mm)")
         return result
 
     def _line_search(self, state, candidate, base_u, targets, present, objective):

@@ -137,3 +137,14 @@ def test_tracking_warm_start_and_chunks():
     for a, b in zip(merged, sequential):
         assert a.frame == b.frame
         assert np.abs(a.activations - b.activations).max() < 1e-3
+
+
+def test_unreachable_targets_are_flagged_and_the_run_continues(take):
+    model, sites, targets = take
+    stretched = targets.copy()
+    stretched[:, 2] += np.linspace(0.0, 30.0, len(targets))  # no muscle can shear the slab so
+    fitter, result = fit(model, sites, stretched, first_frame_gn_steps=4)
+    assert "not reachable" in result.flag
+    assert np.isfinite(result.activations).all()
+    again = fitter.fit_frame(targets, frame=1)  # the next, sane frame is fitted as usual
+    assert again.flag == "" and again.rms_error < 0.05
