@@ -43,6 +43,11 @@ DEFAULT_PETSC_OPTIONS = {
 JIT_OPTIONS = {"cffi_extra_compile_args": ["-O2"], "cache_dir": None}
 
 
+# Option names (by prefix) that QuasistaticSolver itself put in the PETSc options database, as
+# opposed to options the user gave on the command line.
+_OPTIONS_SET_BY_SOLVERS: dict[str, set[str]] = {}
+
+
 class EquilibriumError(RuntimeError):
     """No equilibrium found even with the continuation fallback."""
 
@@ -93,10 +98,19 @@ class QuasistaticSolver:
         self.snes = PETSc.SNES().create(self.comm)
         self.snes.setOptionsPrefix(options_prefix)
         opts = PETSc.Options()
-        for key, value in {**DEFAULT_PETSC_OPTIONS, **(petsc_options or {})}.items():
-            # A user's command-line PETSc option wins over our defaults.
-            if not opts.hasName(options_prefix + key):
-                opts[options_prefix + key] = value
+        wanted = {options_prefix + key: value
+                  for key, value in {**DEFAULT_PETSC_OPTIONS, **(petsc_options or {})}.items()}
+        # The options database is global to the process: drop what an earlier solver with this
+        # prefix put there and this one does not want, and overwrite the rest, so that each
+        # solver gets its own petsc_options. A user's command-line PETSc option still wins.
+        ours = _OPTIONS_SET_BY_SOLVERS.setdefault(options_prefix, set())
+        for name in ours - wanted.keys():
+            opts.delValue(name)
+            ours.discard(name)
+        for name, value in wanted.items():
+            if name in ours or not opts.hasName(name):
+                opts[name] = value
+                ours.add(name)
         self.snes.setFunction(self._assemble_residual, self._residual_vector)
         self.snes.setJacobian(self._assemble_tangent, self.tangent)
         self.snes.setFromOptions()
@@ -145,13 +159,18 @@ class QuasistaticSolver:
 
     def bc_error(self) -> float:
         """Largest distance of a Dirichlet dof from its prescribed value, over all ranks."""
+        # set_bc writes the prescribed values in the unknown's numbering, also for a condition on a
+        # sub-space (whose g lives in the collapsed space) or with a Constant value.
+        prescribed = self.unknown.vector.copy()
+        fem_petsc.set_bc(prescribed, self.bcs)
         local = 0.0
         for bc in self.bcs:
             dofs, _ = bc.dof_indices()
-            prescribed = bc.g.x.array if hasattr(bc.g, "x") else None
-            if prescribed is None or dofs.size == 0:
-                continue
-            local = max(local, np.abs(self.unknown.x.array[dofs] - prescribed[dofs]).max())
+            owned = dofs[dofs < self.unknown.vector.getLocalSize()]
+            if owned.size:
+                local = max(local, np.abs(self.unknown.vector.array_r[owned]
+                                          - prescribed.array_r[owned]).max())
+        prescribed.destroy()
         return self.comm.allreduce(local, op=MPI.MAX)
 
     def solve_continuation(self, set_controls: Callable[[float], None], *, max_halvings: int = 10,
