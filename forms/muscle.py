@@ -29,6 +29,26 @@ _GL_06 = _GL_04 + 25.0 / 9.0 * (0.0 - (-0.2) ** 3)
 _GP_04 = P1 * ((math.exp(0.4 * P2) - 1.0) / P2 - 0.5 * P2 * 0.4**2 - 0.4)
 
 
+def active_force_length(stretch):
+    """f_L: 1 at rest length, 1 - 25/6 s^2 for |s| < 0.4, 25/3 (|s| - 0.6)^2 up to 0.6, then 0."""
+    e = abs(stretch - 1.0)
+    return ufl.conditional(ufl.lt(e, 0.4), 1.0 - 25.0 / 6.0 * e**2,
+                           ufl.conditional(ufl.lt(e, 0.6), 25.0 / 3.0 * (e - 0.6) ** 2, 0.0))
+
+
+def passive_force_length(stretch):
+    """f_P: zero in compression, p1 (exp(p2 s) - p2 s - 1) up to lambda = 1.4, then p3 lambda + p4."""
+    e = stretch - 1.0
+    return ufl.conditional(
+        ufl.le(e, 0.0), 0.0,
+        ufl.conditional(ufl.le(e, 0.4), P1 * (ufl.exp(P2 * e) - P2 * e - 1.0), P3 * stretch + P4))
+
+
+def fiber_stress(F, fiber, tension):
+    """First Piola stress of a fiber tension T along f0: P = T / lambda (F f0) (x) f0."""
+    return tension / fiber_stretch(F, fiber) * ufl.outer(F * fiber, fiber)
+
+
 def active_force_length_integral(stretch):
     """G_L(s) = integral of f_L over [0, s], s = lambda - 1, with
     f_L = 1 - 25/6 s^2 for |s| < 0.4, 25/3 (|s| - 0.6)^2 for 0.4 <= |s| < 0.6, else 0.
@@ -67,6 +87,9 @@ class PassiveFiber:
     def strain_energy(self, F):
         return self.weight * passive_force_length_integral(fiber_stretch(F, self.fiber))
 
+    def first_piola(self, F):
+        return fiber_stress(F, self.fiber, self.weight * passive_force_length(fiber_stretch(F, self.fiber)))
+
 
 @dataclass(frozen=True)
 class ActiveFiber:
@@ -78,3 +101,7 @@ class ActiveFiber:
 
     def strain_energy(self, F):
         return self.activation * self.weight * active_force_length_integral(fiber_stretch(F, self.fiber))
+
+    def first_piola(self, F):
+        tension = self.activation * self.weight * active_force_length(fiber_stretch(F, self.fiber))
+        return fiber_stress(F, self.fiber, tension)

@@ -1,0 +1,505 @@
+"""The face model: a folder (docs/model_format.md) and its in-memory form, ``FaceModel``.
+
+``load_model`` reads a folder on any number of MPI ranks (the mesh is distributed by DOLFINx)
+and checks every part, raising ``ModelError`` with the file and the problem named. It is
+collective: every check that depends on the distributed mesh is reduced over the ranks, so all
+ranks raise together. ``write_model`` writes a folder from plain arrays (serially); the built-in
+face generator (``face_dolfinx.anatomy``) uses it, and so can a user converting their own model.
+"""
+
+import difflib
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+from mpi4py import MPI
+# Imported with the module, on every rank: importing DOLFINx initialises PETSc, which is collective
+# over COMM_WORLD, so it must not first happen inside rank-0-only work (the face generator loads
+# the model it built on rank 0 alone while the other ranks wait).
+from dolfinx import io as dolfinx_io, mesh as dolfinx_mesh
+
+MODEL_FILE, MESH_FILE, HEAVY_FILE, MUSCLES_FILE = "model.toml", "mesh.xdmf", "mesh.h5", "muscles.npz"
+MESH_NAME, TAGS_NAME = "flesh", "boundaries"
+BOUNDARY_NAMES = ("cranium", "mandible", "skin", "free")
+MATERIAL_KEYS = ("mu10", "mu01", "kappa", "fiber_stress")
+MUSCLE_KINDS = ("linear", "sphincter")
+UNIT_TOLERANCE = 1e-6        # |fiber| must be 1 to this
+MARKER_TOLERANCE = 1.0       # mm: markers must lie this close to the skin
+# Tet quality 6 sqrt(2) V / l_rms^3: 1 for the regular tet, 0 for a flat one. Below this a tet is
+# called degenerate: its stiffness would be meaningless and its Jacobian ill-conditioned.
+DEGENERATE_QUALITY = 1e-3
+
+
+class ModelError(ValueError):
+    """A model folder is missing, malformed or inconsistent. The message names file and problem."""
+
+
+@dataclass
+class Muscle:
+    name: str
+    kind: str                 # "linear" or "sphincter"
+    peak_stress: float | None  # sigma_max in kPa; None means the model's material.fiber_stress
+    cells: np.ndarray         # (k,) int32 LOCAL cell indices (owned and ghost) on this rank
+    fraction: np.ndarray      # (k,) volume fraction in (0, 1]
+    fiber: np.ndarray         # (k, 3) unit rest fiber direction
+    # Optional points from model.toml for documentation and rendering (mm): origin/insertion
+    # of a linear muscle, center/axis of a sphincter.
+    geometry: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class JawGeometry:
+    """Temporomandibular joint in the cranium frame at rest (sifakis2005 section 8)."""
+
+    condyle_right: np.ndarray
+    condyle_left: np.ndarray
+    u: np.ndarray                 # right -> left condyle, unit
+    v: np.ndarray                 # sliding direction, back to front, unit, orthogonal to u
+    w: np.ndarray                 # v x u
+    midpoint: np.ndarray          # m
+    condyle_distance: float       # l
+    track_length: float           # d (mm)
+    max_opening_sine: float       # s
+
+    @classmethod
+    def from_condyles(cls, condyle_right, condyle_left, slide_direction, track_length: float,
+                      max_opening_sine: float) -> "JawGeometry":
+        """Derive u, v, w, m, l. The slide direction loses any component along u."""
+        right, left = np.asarray(condyle_right, float), np.asarray(condyle_left, float)
+        axis = left - right
+        distance = float(np.linalg.norm(axis))
+        if distance == 0:
+            raise ValueError("the two condyles coincide")
+        u = axis / distance
+        v = np.asarray(slide_direction, float)
+        v = v - (v @ u) * u
+        if np.linalg.norm(v) < 1e-9:
+            raise ValueError("slide_direction is parallel to the condyle axis")
+        if not track_length > 0 or not 0 < max_opening_sine <= 1:
+            raise ValueError("track_length must be > 0 and max_opening_sine in (0, 1]")
+        v = v / np.linalg.norm(v)
+        return cls(right, left, u, v, np.cross(v, u), 0.5 * (right + left), distance,
+                   float(track_length), float(max_opening_sine))
+
+
+@dataclass
+class FaceModel:
+    path: Path
+    name: str
+    mesh: object                      # dolfinx.mesh.Mesh, distributed over comm
+    facet_tags: object                # dolfinx MeshTags on facets
+    boundary_ids: dict[str, int]
+    muscles: list[Muscle]
+    jaw: JawGeometry
+    markers: dict[str, np.ndarray]
+    landmarks: dict[str, np.ndarray]
+    material: dict[str, float]
+    expressions: dict[str, dict]
+
+    @property
+    def muscle_names(self) -> list[str]:
+        return [m.name for m in self.muscles]
+
+    def muscle_index(self, name: str) -> int:
+        names = self.muscle_names
+        if name in names:
+            return names.index(name)
+        close = difflib.get_close_matches(name, names, n=4, cutoff=0.5)
+        hint = f"; did you mean {', '.join(close)}?" if close else f"; known: {', '.join(names)}"
+        raise ModelError(f"{self.path}: unknown muscle {name!r}{hint}")
+
+    def skin_surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """Points (n, 3) and triangles (m, 3) of the facets tagged skin, on EVERY rank.
+
+        Collective. Triangles are oriented with outward normals (away from their tet); points
+        are the skin's mesh nodes, numbered in the order of the mesh file.
+        """
+        return _skin_surface(self.mesh, self.facet_tags, self.boundary_ids["skin"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading
+# ---------------------------------------------------------------------------------------------
+def load_model(path, comm=MPI.COMM_WORLD) -> FaceModel:
+    """Read and check a model folder; the mesh is distributed over ``comm`` (collective)."""
+    folder = Path(path)
+    if not folder.is_dir():
+        raise ModelError(f"{folder}: no such model folder")
+    for name in (MODEL_FILE, MESH_FILE, HEAVY_FILE, MUSCLES_FILE):
+        if not (folder / name).is_file():
+            raise ModelError(f"{folder / name}: missing file")
+    meta = _read_metadata(folder / MODEL_FILE)
+    muscle_data = _read_muscles(folder / MUSCLES_FILE, meta["muscles"])
+
+    try:
+        with dolfinx_io.XDMFFile(comm, str(folder / MESH_FILE), "r") as xdmf:
+            domain = xdmf.read_mesh(name=MESH_NAME, ghost_mode=dolfinx_mesh.GhostMode.shared_facet)
+            domain.topology.create_connectivity(2, 3)
+            tags = xdmf.read_meshtags(domain, name=TAGS_NAME)
+    except RuntimeError as error:
+        raise ModelError(f"{folder / MESH_FILE}: cannot read mesh {MESH_NAME!r} and facet tags "
+                         f"{TAGS_NAME!r}: {error}") from error
+    num_cells = domain.topology.index_map(3).size_global
+    _check_cells(domain, folder / HEAVY_FILE)
+    boundary_ids = meta["boundaries"]
+    for key in ("cranium", "skin"):
+        count = comm.allreduce(len(tags.find(boundary_ids[key])), op=MPI.SUM)
+        if count == 0:
+            raise ModelError(f"{folder / MESH_FILE}: no facets tagged {key} (value {boundary_ids[key]})")
+    _check_sites(domain, tags, boundary_ids["skin"], meta["markers"], folder / MODEL_FILE)
+
+    # File cell index -> local cell index (owned and ghost), -1 where not on this rank.
+    original = np.asarray(domain.topology.original_cell_index, dtype=np.int64)
+    local_of_file = np.full(num_cells, -1, dtype=np.int32)
+    local_of_file[original] = np.arange(len(original), dtype=np.int32)
+    muscles = []
+    for entry, (file_cells, fraction, fiber) in zip(meta["muscles"], muscle_data):
+        if file_cells.size and (file_cells.min() < 0 or file_cells.max() >= num_cells):
+            raise ModelError(f"{folder / MUSCLES_FILE}: {entry['name']}/cells outside [0, {num_cells})")
+        local = local_of_file[file_cells]
+        here = local >= 0
+        muscles.append(Muscle(entry["name"], entry["kind"], entry["peak_stress"], local[here],
+                              fraction[here], fiber[here], entry["geometry"]))
+    return FaceModel(folder, meta["name"], domain, tags, boundary_ids, muscles, meta["jaw"],
+                     meta["markers"], meta["landmarks"], meta["material"], meta["expressions"])
+
+
+def _read_metadata(path: Path) -> dict:
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+        raise ModelError(f"{path}: malformed TOML: {error}") from error
+
+    def fail(message):
+        raise ModelError(f"{path}: {message}")
+
+    def need(table, key, where):
+        if key not in table:
+            fail(f"missing key {where}{key}")
+        return table[key]
+
+    def number(table, key, where):
+        value = need(table, key, where)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            fail(f"{where}{key} must be a finite number, got {value!r}")
+        return float(value)
+
+    def point(value, where):
+        try:
+            array = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            array = None
+        if array is None or array.shape != (3,) or not np.all(np.isfinite(array)):
+            fail(f"{where} must be three finite numbers [x, y, z], got {value!r}")
+        return array
+
+    def table(key):
+        value = need(data, key, "")
+        if not isinstance(value, dict):
+            fail(f"[{key}] must be a table")
+        return value
+
+    name = need(data, "name", "")
+    for key in MATERIAL_KEYS:
+        need(table("material"), key, "material.")
+    material = {key: number(table("material"), key, "material.") for key in table("material")}
+    boundaries = {}
+    for key in BOUNDARY_NAMES:
+        value = need(table("boundaries"), key, "boundaries.")
+        if isinstance(value, bool) or not isinstance(value, int):
+            fail(f"boundaries.{key} must be an integer tag value, got {value!r}")
+        boundaries[key] = value
+    if len(set(boundaries.values())) != len(boundaries):
+        fail(f"[boundaries] values must be distinct, got {boundaries}")
+
+    entries = need(data, "muscles", "")
+    if not isinstance(entries, list) or not entries:
+        fail("[[muscles]] must list at least one muscle")
+    muscles, seen = [], set()
+    for i, entry in enumerate(entries):
+        where = f"muscles[{i}]."
+        muscle_name = need(entry, "name", where)
+        if not isinstance(muscle_name, str) or not muscle_name or muscle_name in seen:
+            fail(f"{where}name must be a unique non-empty string, got {muscle_name!r}")
+        seen.add(muscle_name)
+        kind = need(entry, "kind", where)
+        if kind not in MUSCLE_KINDS:
+            fail(f"muscle {muscle_name}: kind must be one of {MUSCLE_KINDS}, got {kind!r}")
+        stress = number(entry, "peak_stress", where) if "peak_stress" in entry else None
+        geometry = {key: point(entry[key], f"muscle {muscle_name}: {key}")
+                    for key in ("origin", "insertion", "center", "axis") if key in entry}
+        muscles.append(dict(name=muscle_name, kind=kind, peak_stress=stress, geometry=geometry))
+
+    jaw_table = table("jaw")
+    jaw_points = [point(need(jaw_table, key, "jaw."), f"jaw.{key}")
+                  for key in ("condyle_right", "condyle_left", "slide_direction")]
+    jaw_numbers = [number(jaw_table, key, "jaw.") for key in ("track_length", "max_opening_sine")]
+    try:
+        jaw = JawGeometry.from_condyles(*jaw_points, *jaw_numbers)
+    except ValueError as error:
+        fail(f"[jaw]: {error}")
+
+    sites = {key: {site: point(value, f"{key}.{site}") for site, value in data.get(key, {}).items()}
+             for key in ("markers", "landmarks")}
+    names = [m["name"] for m in muscles]
+    expressions = {}
+    for expression, activations in data.get("expressions", {}).items():
+        checked = {}
+        for key, value in activations.items():
+            where = f"expressions.{expression}.{key}"
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                fail(f"{where} must be a number, got {value!r}")
+            if key != "jaw_opening_deg":
+                if key not in names:
+                    close = difflib.get_close_matches(key, names, n=3, cutoff=0.5)
+                    fail(f"{where}: unknown muscle" + (f" (did you mean {', '.join(close)}?)" if close else ""))
+                if not 0.0 <= value <= 1.0:
+                    fail(f"{where} = {value}: activations must lie in [0, 1]")
+            checked[key] = float(value)
+        expressions[expression] = checked
+    return dict(name=str(name), material=material, boundaries=boundaries, muscles=muscles, jaw=jaw,
+                markers=sites["markers"], landmarks=sites["landmarks"], expressions=expressions)
+
+
+def _read_muscles(path: Path, entries: list[dict]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(file cells, fraction, fiber) per muscle of model.toml, checked."""
+    try:
+        archive = np.load(path, allow_pickle=False)
+        arrays = {key: archive[key] for key in archive.files}
+    except (OSError, ValueError) as error:
+        raise ModelError(f"{path}: cannot read: {error}") from error
+    names = [entry["name"] for entry in entries]
+    in_file = {key.rpartition("/")[0] for key in arrays}
+    unknown = sorted(in_file - set(names))
+    if unknown:
+        raise ModelError(f"{path}: muscles not listed in {MODEL_FILE}: {', '.join(unknown)}")
+    result = []
+    for name in names:
+        missing = [f"{name}/{part}" for part in ("cells", "fraction", "fiber") if f"{name}/{part}" not in arrays]
+        if missing:
+            raise ModelError(f"{path}: missing arrays {', '.join(missing)}")
+        cells = arrays[f"{name}/cells"]
+        fraction = np.asarray(arrays[f"{name}/fraction"], dtype=float)
+        fiber = np.asarray(arrays[f"{name}/fiber"], dtype=float)
+        if not np.issubdtype(cells.dtype, np.integer) or cells.ndim != 1:
+            raise ModelError(f"{path}: {name}/cells must be a 1-d integer array")
+        if fraction.shape != cells.shape or fiber.shape != (len(cells), 3):
+            raise ModelError(f"{path}: {name}: cells {cells.shape}, fraction {fraction.shape} and "
+                             f"fiber {fiber.shape} do not match (n,), (n,), (n, 3)")
+        if len(np.unique(cells)) != len(cells):
+            raise ModelError(f"{path}: {name}/cells lists a cell twice")
+        bad = ~((fraction > 0) & (fraction <= 1))
+        if bad.any():
+            raise ModelError(f"{path}: {name}/fraction has {bad.sum()} values outside (0, 1], "
+                             f"e.g. {fraction[bad][0]!r} at cell {cells[bad][0]}")
+        norm = np.linalg.norm(fiber, axis=1)
+        bad = ~(np.abs(norm - 1.0) <= UNIT_TOLERANCE)
+        if bad.any():
+            raise ModelError(f"{path}: {name}/fiber has {bad.sum()} vectors that are not unit, "
+                             f"e.g. length {norm[bad][0]:.6g} at cell {cells[bad][0]}")
+        result.append((cells.astype(np.int64), fraction, fiber))
+    return result
+
+
+def tet_volumes_and_quality(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed volumes and the quality 6 sqrt(2) |V| / l_rms^3 of tets with corners (m, 4, 3)."""
+    e1, e2, e3 = (corners[:, k] - corners[:, 0] for k in (1, 2, 3))
+    volume = np.einsum("ij,ij->i", np.cross(e1, e2), e3) / 6.0
+    edges = [corners[:, j] - corners[:, i] for i in range(4) for j in range(i + 1, 4)]
+    rms = np.sqrt(sum(np.einsum("ij,ij->i", e, e) for e in edges) / 6.0)
+    return volume, 6.0 * np.sqrt(2.0) * np.abs(volume) / np.maximum(rms, np.finfo(float).tiny) ** 3
+
+
+def _check_cells(domain, path: Path) -> None:
+    """No inverted (signed volume <= 0) or degenerate tets, counted over all ranks.
+
+    DOLFINx keeps each tet's node order from the file (simplices are not reordered), so the sign
+    of the volume is the file's orientation.
+    """
+    comm = domain.comm
+    owned = domain.topology.index_map(3).size_local
+    nodes = domain.geometry.dofmap.array.reshape(-1, 4)[:owned]
+    volume, quality = tet_volumes_and_quality(domain.geometry.x[nodes])
+    original = np.asarray(domain.topology.original_cell_index)[:owned]
+    problems = []
+    for label, bad, measure, rule in (("inverted", volume <= 0, volume, "signed volume <= 0"),
+                                      ("degenerate", (volume > 0) & (quality < DEGENERATE_QUALITY),
+                                       quality, f"quality < {DEGENERATE_QUALITY:g}")):
+        count = comm.allreduce(int(bad.sum()), op=MPI.SUM)
+        worst = (float(measure[bad].min()), int(original[bad][np.argmin(measure[bad])])) if bad.any() else (np.inf, -1)
+        worst_value, worst_cell = comm.allreduce(worst, op=MPI.MINLOC)
+        if count:
+            what = "volume" if label == "inverted" else "quality"
+            problems.append(f"{label} tetrahedra: {count} ({rule}; worst: cell {worst_cell} with "
+                            f"{what} {worst_value:.3g})")
+    if problems:
+        raise ModelError(f"{path}: " + " and ".join(problems))
+
+
+def _check_sites(domain, tags, skin_id: int, markers: dict[str, np.ndarray], path: Path) -> None:
+    """Every marker within MARKER_TOLERANCE of the skin facets (reduced over the ranks)."""
+    from face_dolfinx.surface import SkinSurface
+
+    if not markers:
+        return
+    points, triangles = _local_skin(domain, tags, skin_id)
+    query = np.array(list(markers.values()))
+    distance = np.full(len(query), np.inf)
+    if len(triangles):
+        distance = SkinSurface(points, triangles).closest(query)[3]
+    domain.comm.Allreduce(MPI.IN_PLACE, distance, op=MPI.MIN)
+    far = np.flatnonzero(distance > MARKER_TOLERANCE)
+    if far.size:
+        names = list(markers)
+        listed = ", ".join(f"{names[i]} ({distance[i]:.3g} mm)" for i in far[:5])
+        raise ModelError(f"{path}: markers farther than {MARKER_TOLERANCE} mm from the skin "
+                         f"({far.size} of {len(query)}): {listed}")
+
+
+# ---------------------------------------------------------------------------------------------
+# The skin surface of a distributed mesh
+# ---------------------------------------------------------------------------------------------
+def _local_skin(domain, tags, skin_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """This rank's skin facets as (geometry node coordinates, triangles of local node indices),
+    oriented away from their tet."""
+    topology = domain.topology
+    topology.create_connectivity(2, 3)
+    topology.create_connectivity(2, 0)
+    facets = tags.find(skin_id)
+    facet_vertices = topology.connectivity(2, 0).array.reshape(-1, 3)[facets]
+    cell_of_facet = topology.connectivity(2, 3)
+    cells = cell_of_facet.array[cell_of_facet.offsets[facets]]
+    cell_vertices = topology.connectivity(3, 0).array.reshape(-1, 4)
+    # Topology vertices and geometry nodes of a linear mesh pair up cell by cell.
+    node_of_vertex = np.empty(topology.index_map(0).size_local + topology.index_map(0).num_ghosts, dtype=np.int32)
+    node_of_vertex[cell_vertices.reshape(-1)] = domain.geometry.dofmap.array
+    triangles = node_of_vertex[facet_vertices]
+    x = domain.geometry.x
+    # The tet's fourth node (the one not on the facet) must lie behind the triangle.
+    tet_nodes = node_of_vertex[cell_vertices[cells]]
+    on_facet = (tet_nodes[:, :, None] == triangles[:, None, :]).any(axis=2)
+    apex = tet_nodes[~on_facet]
+    a, b, c = (x[triangles[:, k]] for k in range(3))
+    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), x[apex] - a) > 0
+    triangles[inward] = triangles[inward][:, [0, 2, 1]]
+    return x, triangles
+
+
+def _skin_surface(domain, tags, skin_id: int) -> tuple[np.ndarray, np.ndarray]:
+    comm = domain.comm
+    x, triangles = _local_skin(domain, tags, skin_id)
+    file_node = np.asarray(domain.geometry.input_global_indices, dtype=np.int64)
+    gathered = comm.allgather((file_node[triangles], x[np.unique(triangles)],
+                               file_node[np.unique(triangles)]))
+    triangles = np.concatenate([g[0] for g in gathered])
+    coords = np.concatenate([g[1] for g in gathered])
+    nodes = np.concatenate([g[2] for g in gathered])
+    # Shared facets appear on two ranks: keep one copy of each triangle and of each node.
+    _, first = np.unique(np.sort(triangles, axis=1), axis=0, return_index=True)
+    triangles = triangles[np.sort(first)]
+    nodes, unique = np.unique(nodes, return_index=True)
+    return coords[unique], np.searchsorted(nodes, triangles)
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing
+# ---------------------------------------------------------------------------------------------
+def write_model(path, *, name: str, points: np.ndarray, cells: np.ndarray, facets: np.ndarray,
+                facet_values: np.ndarray, boundary_ids: dict[str, int], muscles: list[Muscle],
+                jaw: JawGeometry, markers: dict[str, np.ndarray], landmarks: dict[str, np.ndarray],
+                material: dict[str, float], expressions: dict[str, dict],
+                info: dict | None = None) -> Path:
+    """Write a model folder (serial). ``muscles[i].cells`` are cell indices into ``cells``.
+
+    points (n, 3) mm; cells (m, 4) positively oriented tets; facets (k, 3) node triples with
+    tag values facet_values (k,); ``info`` is an optional [generator] table of plain values.
+    """
+    folder = Path(path)
+    folder.mkdir(parents=True, exist_ok=True)
+    _write_mesh(folder, np.asarray(points, float), np.asarray(cells, np.int64),
+                np.asarray(facets, np.int64), np.asarray(facet_values, np.int32))
+    np.savez(folder / MUSCLES_FILE, **{
+        f"{m.name}/{part}": value for m in muscles
+        for part, value in (("cells", np.asarray(m.cells, np.int64)),
+                            ("fraction", np.asarray(m.fraction, float)),
+                            ("fiber", np.asarray(m.fiber, float).reshape(-1, 3)))})
+    (folder / MODEL_FILE).write_text(_model_toml(name, boundary_ids, muscles, jaw, markers, landmarks,
+                                                 material, expressions, info))
+    return folder
+
+
+def _write_mesh(folder: Path, points, cells, facets, values) -> None:
+    """mesh.xdmf + mesh.h5 in the layout DOLFINx's XDMFFile writes and reads."""
+    with h5py.File(folder / HEAVY_FILE, "w") as h5:
+        h5[f"Mesh/{MESH_NAME}/geometry"] = points
+        h5[f"Mesh/{MESH_NAME}/topology"] = cells
+        h5[f"MeshTags/{TAGS_NAME}/topology"] = facets
+        h5[f"MeshTags/{TAGS_NAME}/Values"] = values.reshape(-1, 1)
+    heavy = HEAVY_FILE
+    (folder / MESH_FILE).write_text(f"""<?xml version="1.0"?>
+<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>
+<Xdmf Version="3.0" xmlns:xi="http://www.w3.org/2001/XInclude">
+  <Domain>
+    <Grid Name="{MESH_NAME}" GridType="Uniform">
+      <Topology TopologyType="Tetrahedron" NumberOfElements="{len(cells)}" NodesPerElement="4">
+        <DataItem Dimensions="{len(cells)} 4" NumberType="Int" Format="HDF">{heavy}:/Mesh/{MESH_NAME}/topology</DataItem>
+      </Topology>
+      <Geometry GeometryType="XYZ">
+        <DataItem Dimensions="{len(points)} 3" Format="HDF">{heavy}:/Mesh/{MESH_NAME}/geometry</DataItem>
+      </Geometry>
+    </Grid>
+    <Grid Name="{TAGS_NAME}" GridType="Uniform">
+      <xi:include xpointer="xpointer(/Xdmf/Domain/Grid[@Name='{MESH_NAME}']/Geometry)" />
+      <Topology TopologyType="Triangle" NumberOfElements="{len(facets)}" NodesPerElement="3">
+        <DataItem Dimensions="{len(facets)} 3" NumberType="Int" Format="HDF">{heavy}:/MeshTags/{TAGS_NAME}/topology</DataItem>
+      </Topology>
+      <Attribute Name="{TAGS_NAME}" AttributeType="Scalar" Center="Cell">
+        <DataItem Dimensions="{len(facets)} 1" NumberType="Int" Format="HDF">{heavy}:/MeshTags/{TAGS_NAME}/Values</DataItem>
+      </Attribute>
+    </Grid>
+  </Domain>
+</Xdmf>
+""")
+
+
+def _model_toml(name, boundary_ids, muscles, jaw, markers, landmarks, material, expressions, info) -> str:
+    lines = [f"name = {_toml(name)}", 'units = { length = "mm", stress = "kPa" }', ""]
+    if info:
+        lines += ["[generator]"] + [f"{_key(k)} = {_toml(v)}" for k, v in info.items()] + [""]
+    lines += ["[material]"] + [f"{_key(k)} = {_toml(v)}" for k, v in material.items()] + [""]
+    lines += ["[boundaries]"] + [f"{_key(k)} = {int(v)}" for k, v in boundary_ids.items()] + [""]
+    for muscle in muscles:
+        lines += ["[[muscles]]", f"name = {_toml(muscle.name)}", f"kind = {_toml(muscle.kind)}"]
+        if muscle.peak_stress is not None:
+            lines.append(f"peak_stress = {_toml(muscle.peak_stress)}")
+        lines += [f"{key} = {_toml(value)}" for key, value in muscle.geometry.items()] + [""]
+    lines += ["[jaw]", f"condyle_right = {_toml(jaw.condyle_right)}", f"condyle_left = {_toml(jaw.condyle_left)}",
+              f"slide_direction = {_toml(jaw.v)}", f"track_length = {_toml(jaw.track_length)}",
+              f"max_opening_sine = {_toml(jaw.max_opening_sine)}", ""]
+    for title, sites in (("markers", markers), ("landmarks", landmarks)):
+        lines += [f"[{title}]"] + [f"{_key(k)} = {_toml(v)}" for k, v in sites.items()] + [""]
+    for expression, activations in expressions.items():
+        lines += [f"[expressions.{_key(expression)}]"]
+        lines += [f"{_key(k)} = {_toml(v)}" for k, v in activations.items()] + [""]
+    return "\n".join(lines)
+
+
+def _key(key: str) -> str:
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else _toml(key)
+
+
+def _toml(value) -> str:
+    """A TOML literal for the plain values a model holds: strings, numbers, vectors."""
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    return "[" + ", ".join(_toml(v) for v in np.asarray(value).tolist()) + "]"

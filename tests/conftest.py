@@ -1,0 +1,13 @@
+"""Shared fixtures. The small built-in face is built once per session (and cached on disk under
+meshes/cache/, so later sessions find it instantly); under ``mpirun -n 2 python -m pytest``
+every rank gets the same folder."""
+import pytest
+from mpi4py import MPI
+
+SMALL_FACE_TETS = 5000
+
+
+@pytest.fixture(scope="session")
+def builtin_model_path():
+    from face_dolfinx.anatomy import build_builtin_face
+    return build_builtin_face(target_tets=SMALL_FACE_TETS, comm=MPI.COMM_WORLD)

@@ -1,0 +1,226 @@
+"""Loading model folders (face_dolfinx.model): distributed loading and every ModelError.
+
+The error cases corrupt a private copy of the small face and load it on COMM_SELF, so under
+``mpirun -n 2`` each rank checks them independently in its own temporary folder.
+"""
+import re
+import shutil
+import tomllib
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from face_dolfinx.model import ModelError, _toml, load_model, tet_volumes_and_quality
+
+
+@pytest.fixture(scope="module")
+def model(builtin_model_path):
+    return load_model(builtin_model_path, MPI.COMM_WORLD)
+
+
+@pytest.fixture(scope="module")
+def serial_model(builtin_model_path):
+    return load_model(builtin_model_path, MPI.COMM_SELF)
+
+
+def owned_volumes(model):
+    owned = model.mesh.topology.index_map(3).size_local
+    nodes = model.mesh.geometry.dofmap.array.reshape(-1, 4)[:owned]
+    return tet_volumes_and_quality(model.mesh.geometry.x[nodes])[0]
+
+
+def test_model_contents(model):
+    assert model.name == "builtin-face"
+    assert len(model.muscles) == 32 and len(model.muscle_names) == 32
+    assert model.muscle_index("zygomaticus_major_left") == model.muscle_names.index("zygomaticus_major_left")
+    assert set(model.boundary_ids) == {"cranium", "mandible", "skin", "free"}
+    assert model.material["kappa"] > model.material["mu10"] > 0
+    assert {"smile", "jaw_open"} <= set(model.expressions)
+    jaw = model.jaw
+    assert np.allclose(np.cross(jaw.v, jaw.u), jaw.w) and np.isclose(np.linalg.norm(jaw.w), 1.0)
+    assert np.isclose(jaw.u @ jaw.v, 0.0) and np.isclose(jaw.condyle_distance,
+                                                         np.linalg.norm(jaw.condyle_left - jaw.condyle_right))
+    num_local = model.mesh.topology.index_map(3).size_local + model.mesh.topology.index_map(3).num_ghosts
+    for muscle in model.muscles:
+        assert muscle.cells.size == 0 or (muscle.cells.min() >= 0 and muscle.cells.max() < num_local)
+
+
+def test_unknown_muscle_names_close_matches(model):
+    with pytest.raises(ModelError, match="zygomaticus_major_left"):
+        model.muscle_index("zygomaticus_majr_left")
+
+
+def test_distributed_load_matches_serial(model, serial_model):
+    """Same total volume and same volume-weighted muscle fractions on any number of ranks."""
+    comm = model.mesh.comm
+
+    def totals(m, comm):
+        volume = owned_volumes(m)
+        owned = m.mesh.topology.index_map(3).size_local
+        per_muscle = np.array([np.sum(volume[mu.cells[mu.cells < owned]] * mu.fraction[mu.cells < owned])
+                               for mu in m.muscles])
+        return comm.allreduce(volume.sum(), op=MPI.SUM), comm.allreduce(per_muscle, op=MPI.SUM)
+
+    volume, muscles = totals(model, comm)
+    volume_serial, muscles_serial = totals(serial_model, MPI.COMM_SELF)
+    assert abs(volume - volume_serial) <= 1e-12 * volume_serial
+    assert np.all(np.abs(muscles - muscles_serial) <= 1e-12 * muscles_serial)
+    assert np.all(muscles > 0)
+
+
+def test_muscle_cells_are_the_file_cells(model, builtin_model_path):
+    """Local cell indices map back (original_cell_index) to the file's cells, each once."""
+    archive = np.load(builtin_model_path / "muscles.npz")
+    original = np.asarray(model.mesh.topology.original_cell_index)
+    owned = model.mesh.topology.index_map(3).size_local
+    for muscle in model.muscles:
+        mine = original[muscle.cells[muscle.cells < owned]]
+        everyone = np.sort(np.concatenate(model.mesh.comm.allgather(mine)))
+        assert np.array_equal(everyone, np.sort(archive[f"{muscle.name}/cells"]))
+
+
+def test_skin_surface_on_every_rank(model, serial_model):
+    points, triangles = model.skin_surface()
+    serial_points, serial_triangles = serial_model.skin_surface()
+    assert points.shape == serial_points.shape and triangles.shape == serial_triangles.shape
+    assert np.array_equal(points, serial_points)
+    assert np.array_equal(np.sort(np.sort(triangles, axis=1), axis=0),
+                          np.sort(np.sort(serial_triangles, axis=1), axis=0))
+    gathered = model.mesh.comm.allgather(triangles)
+    assert all(np.array_equal(g, gathered[0]) for g in gathered)
+    # Outward orientation: on the face's front (nose tip) the normal points forward (+z).
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    normals = np.cross(b - a, c - a)
+    front = np.linalg.norm(a - model.landmarks["nose_tip"], axis=1) < 5.0
+    assert np.all(normals[front, 2] > 0)
+
+
+# -- ModelError cases ---------------------------------------------------------------------------
+@pytest.fixture
+def copy(builtin_model_path, tmp_path):
+    folder = tmp_path / "face"
+    shutil.copytree(builtin_model_path, folder)
+    return folder
+
+
+def load(folder):
+    return load_model(folder, MPI.COMM_SELF)
+
+
+def edit_toml(folder, old, new):
+    path = folder / "model.toml"
+    text = path.read_text()
+    assert re.search(old, text, flags=re.M), old
+    path.write_text(re.sub(old, new, text, count=1, flags=re.M))
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(ModelError, match="no such model folder"):
+        load(tmp_path / "nowhere")
+
+
+@pytest.mark.parametrize("name", ["model.toml", "mesh.xdmf", "mesh.h5", "muscles.npz"])
+def test_missing_file(copy, name):
+    (copy / name).unlink()
+    with pytest.raises(ModelError, match=f"{name}: missing file"):
+        load(copy)
+
+
+def test_malformed_toml(copy):
+    with open(copy / "model.toml", "a") as f:
+        f.write("\nthis is = not = toml\n")
+    with pytest.raises(ModelError, match=r"model\.toml: malformed TOML"):
+        load(copy)
+
+
+@pytest.mark.parametrize("key, table", [("mu10", "material"), ("track_length", "jaw"), ("skin", "boundaries")])
+def test_missing_key(copy, key, table):
+    edit_toml(copy, rf"^{key} = .*$", "")
+    with pytest.raises(ModelError, match=rf"model\.toml: missing key {table}\.{key}"):
+        load(copy)
+
+
+def rewrite_muscles(folder, change):
+    arrays = dict(np.load(folder / "muscles.npz"))
+    change(arrays)
+    np.savez(folder / "muscles.npz", **arrays)
+
+
+def test_unknown_muscle_in_npz(copy):
+    def add(arrays):
+        for part in ("cells", "fraction", "fiber"):
+            arrays[f"nosuchmuscle/{part}"] = arrays[f"risorius_left/{part}"]
+    rewrite_muscles(copy, add)
+    with pytest.raises(ModelError, match=r"muscles\.npz: muscles not listed in model\.toml: nosuchmuscle"):
+        load(copy)
+
+
+@pytest.mark.parametrize("bad", [0.0, 1.5, -0.2, np.nan])
+def test_fraction_outside_unit_interval(copy, bad):
+    def spoil(arrays):
+        arrays["mentalis_left/fraction"] = arrays["mentalis_left/fraction"].copy()
+        arrays["mentalis_left/fraction"][0] = bad
+    rewrite_muscles(copy, spoil)
+    with pytest.raises(ModelError, match=r"muscles\.npz: mentalis_left/fraction has 1 values outside \(0, 1\]"):
+        load(copy)
+
+
+def test_non_unit_fiber(copy):
+    def spoil(arrays):
+        arrays["buccinator_right/fiber"] = arrays["buccinator_right/fiber"] * 1.01
+    rewrite_muscles(copy, spoil)
+    with pytest.raises(ModelError, match=r"muscles\.npz: buccinator_right/fiber has \d+ vectors that are not unit"):
+        load(copy)
+
+
+def add_tet(folder, corners):
+    """Append a detached tet with four new nodes (the rest of the mesh stays valid)."""
+    with h5py.File(folder / "mesh.h5", "r+") as h5:
+        points, tets = h5["Mesh/flesh/geometry"][:], h5["Mesh/flesh/topology"][:]
+        del h5["Mesh/flesh/geometry"], h5["Mesh/flesh/topology"]
+        h5["Mesh/flesh/geometry"] = np.vstack([points, corners])
+        h5["Mesh/flesh/topology"] = np.vstack([tets, len(points) + np.arange(4)])
+    xdmf = folder / "mesh.xdmf"
+    text = xdmf.read_text()
+    text = text.replace(f'NumberOfElements="{len(tets)}"', f'NumberOfElements="{len(tets) + 1}"')
+    text = text.replace(f'Dimensions="{len(tets)} 4"', f'Dimensions="{len(tets) + 1} 4"')
+    xdmf.write_text(text.replace(f'Dimensions="{len(points)} 3"', f'Dimensions="{len(points) + 4} 3"'))
+    return len(tets)
+
+
+FAR = np.array([0.0, 0.0, -300.0])
+UNIT_TET = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])
+
+
+def test_inverted_tet(copy):
+    cell = add_tet(copy, FAR + UNIT_TET[[0, 2, 1, 3]])
+    with pytest.raises(ModelError, match=rf"mesh\.h5: inverted tetrahedra: 1 .*worst: cell {cell} with volume -167"):
+        load(copy)
+
+
+def test_degenerate_tet(copy):
+    sliver = UNIT_TET * [1, 1, 1e-4]
+    cell = add_tet(copy, FAR + sliver)
+    with pytest.raises(ModelError, match=rf"mesh\.h5: degenerate tetrahedra: 1 .*worst: cell {cell} with quality"):
+        load(copy)
+
+
+def test_no_cranium_facets(copy):
+    edit_toml(copy, r"^cranium = \d+$", "cranium = 99")
+    with pytest.raises(ModelError, match=r"mesh\.xdmf: no facets tagged cranium"):
+        load(copy)
+
+
+def test_marker_off_the_skin(copy):
+    marker = tomllib.loads((copy / "model.toml").read_text())["markers"]["chin_2"]
+    edit_toml(copy, r"^chin_2 = .*$", f"chin_2 = {_toml(np.array(marker) + [0, 0, 5.0])}")
+    with pytest.raises(ModelError, match=r"model\.toml: markers farther than 1.0 mm from the skin \(1 of 79\): chin_2 \([45]\."):
+        load(copy)
+
+
+def test_expression_with_unknown_muscle(copy):
+    edit_toml(copy, r"^\[expressions\.smile\]$", "[expressions.smile]\nzygomaticus_mayor_left = 0.5")
+    with pytest.raises(ModelError, match="did you mean zygomaticus_major_left"):
+        load(copy)
