@@ -34,6 +34,8 @@ def _setup_logging(folder: pathlib.Path | None = None, verbose: bool = False) ->
     fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S")
     console = logging.StreamHandler(sys.stdout)
     console.setFormatter(fmt)
+    # The form compiler logs its C builds at INFO on the root logger: keep only ours and warnings.
+    console.addFilter(lambda record: record.name.startswith("face_dolfinx") or record.levelno >= logging.WARNING)
     root.addHandler(console)
     if folder is not None:
         handler = logging.FileHandler(folder / "run.log")
