@@ -1,0 +1,90 @@
+"""The forward model on the small built-in face (about 5K tets).
+
+Robustness (rest to every muscle fully on, and to the widest jaw opening with both condyles at the
+end of their tracks, each in one call), distributed runs reproducing the serial displacement to
+1e-8, the quadratic option, and error messages for bad controls.
+"""
+import math
+
+from mpi4py import MPI
+import numpy as np
+import pytest
+
+from face_dolfinx.bones import jaw_pose
+from face_dolfinx.model import ModelError, load_model
+from face_dolfinx.points import PointEvaluator
+from face_dolfinx.problem import FaceProblem
+
+
+@pytest.fixture(scope="module")
+def model(builtin_model_path):
+    return load_model(builtin_model_path, MPI.COMM_WORLD)
+
+
+def marker_displacements(problem, model):
+    points = np.array(list(model.markers.values()))
+    return PointEvaluator(problem.V, points).values(problem.u.x.array)
+
+
+def widest_jaw(model):
+    jaw = model.jaw
+    return jaw_pose(jaw, math.asin(jaw.max_opening_sine), jaw.track_length, jaw.track_length)
+
+
+def test_all_muscles_and_widest_jaw_from_rest(model):
+    problem = FaceProblem(model)
+    report = problem.solve(activations=np.ones(problem.num_muscles))
+    assert report.converged and problem.residual_norm() < 1e-5  # mN; the initial residual is ~1e4
+    assert np.abs(marker_displacements(problem, model)).max() > 3.0
+    problem.u.x.array[:] = 0.0
+    problem.solve(activations=np.zeros(problem.num_muscles))
+    report = problem.solve(activations=np.ones(problem.num_muscles), jaw=widest_jaw(model))
+    assert report.converged and problem.residual_norm() < 1e-5  # mN; the initial residual is ~1e4
+    chin = marker_displacements(problem, model)[list(model.markers).index("chin_1")] \
+        if "chin_1" in model.markers else marker_displacements(problem, model).max(axis=0)
+    assert np.linalg.norm(chin) > 15.0  # the chin really drops with a 25 degree opening
+
+
+def test_expressions_move_the_expected_regions(model):
+    """A smile moves the mouth corners far more than the brows (its orbicularis oculi part
+    squints a little); a brow raise moves the brows up."""
+    problem = FaceProblem(model)
+    names = list(model.markers)
+    corners = [names.index(n) for n in names if n.startswith("mouth_corner")]
+    brows = [names.index(n) for n in names if n.startswith("brow")]
+    problem.solve(activations=model.expressions["smile"])
+    smile = marker_displacements(problem, model)
+    assert np.linalg.norm(smile[corners], axis=1).min() > 3.0
+    assert np.linalg.norm(smile[brows], axis=1).max() < 0.5 * np.linalg.norm(smile[corners], axis=1).min()
+    problem.solve(activations=model.expressions["brow_raise"])
+    raised = marker_displacements(problem, model)
+    assert raised[brows, 1].mean() > 2.0  # y is up
+
+
+def test_distributed_equals_serial(model, builtin_model_path):
+    controls = dict(activations=model.expressions["pucker"], jaw=jaw_pose(model.jaw, 0.15, 1.0, 2.0))
+    world = FaceProblem(model)
+    world.solve(**controls)
+    alone = FaceProblem(load_model(builtin_model_path, MPI.COMM_SELF))
+    alone.solve(**controls)
+    a, b = marker_displacements(world, model), marker_displacements(alone, model)
+    assert np.abs(a - b).max() <= 1e-8 * np.abs(b).max()
+
+
+def test_quadratic_displacements_are_softer(model):
+    """P2 relieves the volumetric locking of P1 tetrahedra: the same smile moves further."""
+    linear, quadratic = FaceProblem(model), FaceProblem(model, degree=2)
+    for problem in (linear, quadratic):
+        assert problem.solve(activations=model.expressions["smile"]).converged
+    p1 = np.abs(marker_displacements(linear, model)).max()
+    p2 = np.abs(marker_displacements(quadratic, model)).max()
+    assert p2 > 1.05 * p1
+
+
+def test_bad_controls_name_the_problem(model):
+    problem = FaceProblem(model)
+    with pytest.raises(ModelError, match="unknown muscle 'zygomaticus_major'"):
+        problem.solve(activations={"zygomaticus_major": 0.5})
+    with pytest.raises(ValueError, match="frontalis_left=1.2"):
+        problem.solve(activations={"frontalis_left": 1.2})
+    assert np.array_equal(problem.controls.activations, np.zeros(problem.num_muscles))  # unchanged
