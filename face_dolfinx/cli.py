@@ -68,6 +68,8 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
     from .output import FaceWriter, atomic_directory
     from .problem import FaceProblem
     comm = MPI.COMM_WORLD
+    for name in expressions:  # fail before any work, not halfway through
+        _expression_controls(model, name)
     start = time.perf_counter()
     problem = FaceProblem(model, degree=degree)
     log.info("model %s: %d tets, %d muscles, %d dofs, %d muscle slots per cell; set-up %.1f s",
