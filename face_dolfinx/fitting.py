@@ -43,6 +43,8 @@ class FitSettings:
     first_frame_gn_steps: int = 8       # from a remote initial guess
     relative_decrease: float = 1e-3     # stop when the objective drops by less than this
     min_step: float = 1e-5              # stop when the control step is smaller than this
+    marker_tolerance: float = 1e-4      # mm: stop when the marker RMS error is below this
+    trial_halvings: int = 3             # continuation budget of a trial point; beyond: rejected
     line_search_depth: int = 6          # golden-section evaluations when the full step fails
     temporal_smoothness: float = 0.0    # weight (mm^2 per unit activation^2) towards the last frame
     fit_head: bool = True
@@ -122,9 +124,12 @@ class FaceFitter:
             return jaw_pose(self.jaw_geometry, *state.tmj)
         return state.jaw
 
-    def _equilibrium(self, state: ControlState, guess: np.ndarray | None) -> None:
+    def _equilibrium(self, state: ControlState, guess: np.ndarray | None, trial: bool = False) -> None:
+        """Equilibrium at ``state``. A trial point (a Gauss-Newton candidate or a line-search
+        point) that needs deep continuation is a bad step: it is rejected early, not forced."""
         self.problem.solve(activations=np.clip(state.activations, 0.0, 1.0),
-                           cranium=state.cranium, jaw=self._jaw_of(state), guess=guess)
+                           cranium=state.cranium, jaw=self._jaw_of(state), guess=guess,
+                           max_halvings=self.settings.trial_halvings if trial else 10)
 
     def _objective(self, state: ControlState, targets, present) -> tuple[float, np.ndarray]:
         simulated = self.markers.positions(self.problem.u.x.array, state.cranium)
@@ -339,8 +344,9 @@ class FaceFitter:
         objective, simulated = self._objective(state, targets, present)
         initial_rms = float(np.sqrt(np.mean(np.sum((simulated - targets)[present] ** 2, axis=1))))
         fresh = not (settings.reuse_jacobian and self._cached_jacobian is not None)
+        converged_objective = settings.marker_tolerance**2 * max(1, int(present.sum()))
         steps = 0
-        while steps < max_steps:
+        while steps < max_steps and objective > converged_objective:
             steps += 1
             base_u = self.problem.u.x.array.copy()
             if fresh:
@@ -361,7 +367,7 @@ class FaceFitter:
             t0 = time.perf_counter()
             guess = base_u + step @ dofs[:len(step)]
             try:
-                self._equilibrium(candidate, guess)
+                self._equilibrium(candidate, guess, trial=True)
                 candidate_objective, _ = self._objective(candidate, targets, present)
             except EquilibriumError:
                 candidate_objective = math.inf
@@ -404,7 +410,7 @@ class FaceFitter:
             trial = self._interpolate(state, candidate, t)
             guess = (1 - t) * base_u + t * candidate_u
             try:
-                self._equilibrium(trial, guess)
+                self._equilibrium(trial, guess, trial=True)
             except EquilibriumError:
                 return math.inf
             value, _ = self._objective(trial, targets, present)

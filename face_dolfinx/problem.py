@@ -226,12 +226,14 @@ class FaceProblem:
 
     # -- solving -----------------------------------------------------------------------------
     def solve(self, activations=None, cranium: AffineMap | None = None,
-              jaw: AffineMap | None = None, guess: np.ndarray | None = None) -> SolveReport:
+              jaw: AffineMap | None = None, guess: np.ndarray | None = None,
+              max_halvings: int = 10) -> SolveReport:
         """Equilibrium for the given controls (unspecified ones keep their values).
 
         Newton starts from ``guess`` (a dof array, e.g. the Gauss-Newton prediction X + dX/dc dc)
         if given, else from the current equilibrium carried along the change of the cranium
-        frame. If that fails, continuation from the current equilibrium takes over.
+        frame. If that fails, continuation from the current equilibrium takes over, halving its
+        step at most ``max_halvings`` times before raising EquilibriumError.
         """
         start = self.controls.copy()
         target = Controls(
@@ -260,7 +262,8 @@ class FaceProblem:
             if not (np.array_equal(old.matrix, new.matrix) and np.array_equal(old.translation, new.translation)):
                 self._move_rigidly(old, new)
 
-        report = self.solver.solve_continuation(set_controls, predictor=predictor)
+        report = self.solver.solve_continuation(set_controls, predictor=predictor,
+                                                max_halvings=max_halvings)
         self._set_controls(target)
         return report
 
