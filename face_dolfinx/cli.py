@@ -2,7 +2,9 @@
 
 Subcommands:
   build     generate the built-in face at a resolution and print the model folder
-  simulate  equilibrium shapes for named expressions or given activations -> XDMF + PNG
+  simulate  equilibrium shapes for named expressions -> XDMF + PNG
+  synth     a synthetic take of known truth (markers with noise, outliers, gaps) -> TRC/CSV/C3D
+  fit       a take -> activations, head and jaw motion per frame (resumable)
   demo      the README's main job: build the default face, simulate a few expressions
 """
 import argparse
@@ -100,6 +102,115 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
     return rows
 
 
+def _root_first(action):
+    """Run ``action`` on rank 0 and re-raise its exception on every rank."""
+    comm = MPI.COMM_WORLD
+    value, error = None, None
+    if comm.rank == 0:
+        try:
+            value = action()
+        except Exception as exc:  # every rank must stop, not only rank 0
+            error = exc
+    error = comm.bcast(error, root=0)
+    if error is not None:
+        raise error
+    return comm.bcast(value, root=0)
+
+
+def synth(model, args) -> None:
+    """Solve the face along a scenario, sample its marker sites, write capture + truth."""
+    from .capture import write_capture
+    from .fitting import MarkerSet
+    from .problem import FaceProblem
+    from .synthetic import synthesize_take
+    out = pathlib.Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
+    problem = FaceProblem(model)
+    names = list(model.markers)
+    markers = MarkerSet(problem, np.array([model.markers[n] for n in names]), names=names)
+    capture, truth = synthesize_take(
+        problem, markers, model, args.scenario, n_frames=args.frames, frame_rate=args.rate,
+        noise=args.noise, outliers=args.outliers, gaps=args.gaps, head_motion=not args.no_head_motion,
+        seed=args.seed, progress=lambda f: log.info("synth frame %d/%d", f + 1, args.frames))
+
+    def write():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_capture(capture, out)
+        np.savez(truth_path(out), activations=truth.activations, tmj=truth.tmj,
+                 head_matrices=np.array([h.matrix for h in truth.head]),
+                 head_translations=np.array([h.translation for h in truth.head]),
+                 clean_positions=truth.clean_positions, muscle_names=np.array(model.muscle_names))
+    _root_first(write)
+    log.info("wrote %s (%d frames, %d markers) and its truth %s", out, args.frames, len(names), truth_path(out))
+
+
+def truth_path(capture_path: pathlib.Path) -> pathlib.Path:
+    return capture_path.with_name(capture_path.stem + ".truth.npz")
+
+
+def load_truth(path: pathlib.Path):
+    from .bones import AffineMap
+    from .synthetic import TakeTruth
+    data = np.load(path)
+    head = [AffineMap(M, t) for M, t in zip(data["head_matrices"], data["head_translations"])]
+    return TakeTruth(data["activations"], data["tmj"], head, data["clean_positions"])
+
+
+def fit(model, args) -> None:
+    """Fit every frame of a take, writing each as soon as it is done; resumes a killed run."""
+    from .bones import AffineMap
+    from .capture import read_capture
+    from .fitting import FaceFitter, FitSettings, MarkerSet
+    from .problem import FaceProblem
+    from .results import FitFolder
+    comm = MPI.COMM_WORLD
+    capture_path = pathlib.Path(args.capture)
+    capture = read_capture(capture_path, units=args.units, up_axis=args.up_axis)
+    unknown = [n for n in capture.marker_names if n not in model.markers]
+    if unknown:
+        raise SystemExit(f"{capture_path}: markers {', '.join(unknown[:5])}{' ...' if len(unknown) > 5 else ''} "
+                         f"are not marker sites of model {model.name}; this capture needs aligning to "
+                         f"the model first")
+    truth_file = pathlib.Path(args.truth) if args.truth else truth_path(capture_path)
+    truth = load_truth(truth_file) if truth_file.exists() else None
+    settings = FitSettings(mode=args.mode, max_gn_steps=args.gn_steps,
+                           temporal_smoothness=args.smoothness)
+    run = dict(capture=str(capture_path.resolve()), model=str(model.path), mode=args.mode,
+               gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames)
+    folder = _root_first(lambda: FitFolder(args.out, run, overwrite=args.overwrite))
+    done = _root_first(folder.finished_frames)
+    frames = [f for f in range(capture.n_frames) if f not in done]
+    problem = FaceProblem(model)
+    sites = np.array([model.markers[n] for n in capture.marker_names])
+    fitter = FaceFitter(problem, MarkerSet(problem, sites, names=capture.marker_names), settings)
+    if done and frames:
+        # Resume: warm start from the last finished frame before the first unfinished one.
+        previous = max((f for f in done if f < frames[0]), default=None)
+        if previous is not None:
+            last = done[previous]
+            fitter.state.activations = last.activations.copy()
+            fitter.state.cranium = last.cranium
+            if last.jaw_tmj is not None:
+                fitter.state.tmj = last.jaw_tmj.copy()
+            else:
+                fitter.state.jaw = last.jaw
+            problem.solve(activations=last.activations, cranium=last.cranium, jaw=last.jaw)
+            fitter.previous_activations, fitter.frames_done = last.activations.copy(), 1
+        log.info("resuming %s at frame %d (%d frames already done)", args.out, frames[0], len(done))
+    for frame in frames:
+        result = fitter.fit_frame(capture.positions[frame], frame=frame)
+        if comm.rank == 0:
+            folder.write_frame(result)
+        error = "" if truth is None else \
+            f", activation error {np.abs(result.activations - truth.activations[frame]).max():.3f}"
+        log.info("frame %d/%d: marker RMS %.3f mm (max %.3f), %d GN steps, %.1f s%s%s", frame + 1,
+                 capture.n_frames, result.rms_error, result.max_error, result.gn_steps, result.seconds,
+                 error, f" [{result.flag}]" if result.flag else "")
+    _root_first(lambda: folder.finish(model.muscle_names, capture.marker_names, capture.times, truth))
+    log.info("results: %s", pathlib.Path(args.out).resolve())
+
+
 def _render_expression(problem, path: pathlib.Path, title: str) -> None:
     from .output import displacement_at
     from .render import render_skin
@@ -130,6 +241,34 @@ def main(argv=None) -> int:
         if name == "simulate":
             p.add_argument("expressions", nargs="+", help="expression names defined in the model")
 
+    def model_options(p, out):
+        p.add_argument("--model", help="model folder (default: the built-in face)")
+        p.add_argument("--tets", type=int, default=20_000, help="built-in face resolution")
+        p.add_argument("--out", default=out, help="output path")
+        p.add_argument("--overwrite", action="store_true", help="replace existing output")
+
+    p = sub.add_parser("synth", help="synthetic take with known truth")
+    model_options(p, "takes/speech.trc")
+    p.add_argument("--scenario", default="speech", help="smile, jaw, brow, speech or mixed")
+    p.add_argument("--frames", type=int, default=30)
+    p.add_argument("--rate", type=float, default=60.0, help="frame rate (Hz)")
+    p.add_argument("--noise", type=float, default=0.5, help="marker noise, RMS of the 3D error (mm)")
+    p.add_argument("--outliers", type=int, default=0, help="markers jumping 10 mm for 3 frames")
+    p.add_argument("--gaps", type=int, default=0, help="markers missing for a stretch of frames")
+    p.add_argument("--no-head-motion", action="store_true")
+    p.add_argument("--seed", type=int, default=0)
+
+    p = sub.add_parser("fit", help="fit activations and bone motion to a take")
+    model_options(p, "results/fit")
+    p.add_argument("capture", help="TRC, CSV or C3D file whose markers are model marker sites")
+    p.add_argument("--units", help="mm, cm or m when the file does not say")
+    p.add_argument("--up-axis", choices=("Y", "Z"), help="vertical axis of the file")
+    p.add_argument("--mode", choices=("exact", "paper"), default="exact")
+    p.add_argument("--gn-steps", type=int, default=3, help="Gauss-Newton steps per frame")
+    p.add_argument("--smoothness", type=float, default=0.0,
+                   help="temporal smoothness weight on activations (off by default)")
+    p.add_argument("--truth", help="truth .npz of a synthetic take (default: next to the capture)")
+
     args, petsc_args = parser.parse_known_args(argv)
     # Unparsed -face_* arguments are PETSc options (e.g. -face_pc_type hypre).
     if petsc_args:
@@ -148,6 +287,12 @@ def main(argv=None) -> int:
         return 0
 
     model = _model_from_args(args)
+    if args.command == "synth":
+        synth(model, args)
+        return 0
+    if args.command == "fit":
+        fit(model, args)
+        return 0
     expressions = args.expressions if args.command == "simulate" else \
         [e for e in DEMO_EXPRESSIONS if e in model.expressions]
     out = pathlib.Path(args.out)
