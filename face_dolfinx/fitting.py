@@ -27,7 +27,7 @@ from scipy.optimize import lsq_linear
 from forms import penalties
 from .bones import AffineMap, jaw_pose, rotation
 from .points import PointEvaluator
-from .sensitivity import EquilibriumSensitivity, bone_position_derivatives
+from .sensitivity import EquilibriumSensitivity, bone_position_derivatives, frame_columns
 from .solver import EquilibriumError
 
 log = logging.getLogger(__name__)
@@ -196,14 +196,7 @@ class FaceFitter:
     def _cranium_marker_columns(self, state: ControlState) -> np.ndarray:
         """d(marker)/d(M_c, t_c) (12, markers, 3): the whole face, offsets included, moves
         with the cranium frame."""
-        x = self.markers.positions(self.problem.u.x.array, state.cranium)
-        y = (x - state.cranium.translation) @ np.linalg.inv(state.cranium.matrix).T
-        columns = np.zeros((12,) + x.shape)
-        for i in range(3):
-            for j in range(3):
-                columns[3 * i + j][:, i] = y[:, j]
-            columns[9 + i][:, i] = 1.0
-        return columns
+        return frame_columns(self.markers.positions(self.problem.u.x.array, state.cranium), state.cranium)
 
     # -- steps --------------------------------------------------------------------------------
     def _layout(self):

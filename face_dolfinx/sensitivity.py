@@ -85,16 +85,19 @@ class EquilibriumSensitivity:
         Exact when M_c is a rotation: the whole equilibrium then moves with the cranium frame.
         """
         problem = self.problem
-        X = problem.dof_coordinates
-        x = X + problem.u.x.array.reshape(-1, 3)
-        cranium = problem.controls.cranium
-        y = (x - cranium.translation) @ np.linalg.inv(cranium.matrix).T
-        columns = np.zeros((12,) + x.shape)
-        for i in range(3):
-            for j in range(3):
-                columns[3 * i + j][:, i] = y[:, j]
-            columns[9 + i][:, i] = 1.0
-        return columns.reshape(12, -1)
+        x = problem.dof_coordinates + problem.u.x.array.reshape(-1, 3)
+        return frame_columns(x, problem.controls.cranium).reshape(12, -1)
+
+
+def frame_columns(points: np.ndarray, frame) -> np.ndarray:
+    """d(points)/d(M, t) (12, n, 3) for points that move with an affine frame x = M y + t."""
+    y = (points - frame.translation) @ np.linalg.inv(frame.matrix).T
+    columns = np.zeros((12,) + points.shape)
+    for i in range(3):
+        for j in range(3):
+            columns[3 * i + j][:, i] = y[:, j]
+        columns[9 + i][:, i] = 1.0
+    return columns
 
 
 def bone_position_derivatives(problem, pose_of, params: np.ndarray, step: float) -> np.ndarray:
