@@ -161,7 +161,8 @@ def fit(model, args) -> None:
     """Fit every frame of a take, writing each as soon as it is done; resumes a killed run."""
     from .bones import AffineMap
     from .capture import read_capture
-    from .fitting import FaceFitter, FitSettings, MarkerSet
+    from .fitting import FaceFitter, FitSettings, MarkerSet, chunk_ranges
+    from .model import load_model
     from .problem import FaceProblem
     from .results import FitFolder
     comm = MPI.COMM_WORLD
@@ -180,35 +181,58 @@ def fit(model, args) -> None:
                gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames)
     folder = _root_first(lambda: FitFolder(args.out, run, overwrite=args.overwrite))
     done = _root_first(folder.finished_frames)
-    frames = [f for f in range(capture.n_frames) if f not in done]
-    problem = FaceProblem(model)
+    chunks = chunk_ranges(capture.n_frames, args.chunks)
+    if args.chunk is not None:  # one chunk in this (separate) process
+        if not 0 <= args.chunk < len(chunks):
+            raise SystemExit(f"--chunk {args.chunk}: the take has chunks 0..{len(chunks) - 1}")
+        chunks = [chunks[args.chunk]]
+    # MPI ranks split into groups, each fitting whole chunks on its own copy of the mesh.
+    groups = min(len(chunks), comm.size)
+    group = comm.rank * groups // comm.size
+    group_comm = comm.Split(group, comm.rank) if groups > 1 else comm
+    group_model = load_model(model.path, group_comm) if groups > 1 else model
+    problem = FaceProblem(group_model)
     sites = np.array([model.markers[n] for n in capture.marker_names])
-    fitter = FaceFitter(problem, MarkerSet(problem, sites, names=capture.marker_names), settings)
-    if done and frames:
-        # Resume: warm start from the last finished frame before the first unfinished one.
-        previous = max((f for f in done if f < frames[0]), default=None)
-        if previous is not None:
-            last = done[previous]
-            fitter.state.activations = last.activations.copy()
-            fitter.state.cranium = last.cranium
-            if last.jaw_tmj is not None:
-                fitter.state.tmj = last.jaw_tmj.copy()
-            else:
-                fitter.state.jaw = last.jaw
-            problem.solve(activations=last.activations, cranium=last.cranium, jaw=last.jaw)
-            fitter.previous_activations, fitter.frames_done = last.activations.copy(), 1
-        log.info("resuming %s at frame %d (%d frames already done)", args.out, frames[0], len(done))
-    for frame in frames:
-        result = fitter.fit_frame(capture.positions[frame], frame=frame)
-        if comm.rank == 0:
-            folder.write_frame(result)
-        error = "" if truth is None else \
-            f", activation error {np.abs(result.activations - truth.activations[frame]).max():.3f}"
-        log.info("frame %d/%d: marker RMS %.3f mm (max %.3f), %d GN steps, %.1f s%s%s", frame + 1,
-                 capture.n_frames, result.rms_error, result.max_error, result.gn_steps, result.seconds,
-                 error, f" [{result.flag}]" if result.flag else "")
+    markers = MarkerSet(problem, sites, names=capture.marker_names)
+    for chunk in chunks[group::groups]:
+        todo = [f for f in chunk if f not in done]
+        if not todo:
+            continue
+        fitter = FaceFitter(problem, markers, settings)
+        problem.u.x.array[:] = 0.0
+        problem.solve(activations=np.zeros(problem.num_muscles), cranium=AffineMap(), jaw=AffineMap())
+        previous = max((f for f in done if chunk.start <= f < todo[0]), default=None)
+        if previous is not None:  # resume inside this chunk from its last finished frame
+            _warm_start(fitter, done[previous])
+            log.info("resuming %s at frame %d (%d frames already done)", args.out, todo[0], len(done))
+        for frame in todo:
+            result = fitter.fit_frame(capture.positions[frame], frame=frame)
+            if group_comm.rank == 0:
+                folder.write_frame(result)
+            error = "" if truth is None else \
+                f", activation error {np.abs(result.activations - truth.activations[frame]).max():.3f}"
+            log.info("frame %d/%d: marker RMS %.3f mm (max %.3f), %d GN steps, %.1f s%s%s", frame + 1,
+                     capture.n_frames, result.rms_error, result.max_error, result.gn_steps,
+                     result.seconds, error, f" [{result.flag}]" if result.flag else "")
+    comm.barrier()
+    missing = capture.n_frames - len(_root_first(folder.finished_frames))
+    if missing:
+        log.info("%d frames still to fit (other chunks); rerun to finish %s", missing, args.out)
+        return
     _root_first(lambda: folder.finish(model.muscle_names, capture.marker_names, capture.times, truth))
     log.info("results: %s", pathlib.Path(args.out).resolve())
+
+
+def _warm_start(fitter, last) -> None:
+    """Continue a fit from a finished frame: its controls and the equilibrium there."""
+    fitter.state.activations = last.activations.copy()
+    fitter.state.cranium = last.cranium
+    if last.jaw_tmj is not None:
+        fitter.state.tmj = last.jaw_tmj.copy()
+    else:
+        fitter.state.jaw = last.jaw
+    fitter.problem.solve(activations=last.activations, cranium=last.cranium, jaw=last.jaw)
+    fitter.previous_activations, fitter.frames_done = last.activations.copy(), 1
 
 
 def _render_expression(problem, path: pathlib.Path, title: str) -> None:
@@ -268,6 +292,10 @@ def main(argv=None) -> int:
     p.add_argument("--smoothness", type=float, default=0.0,
                    help="temporal smoothness weight on activations (off by default)")
     p.add_argument("--truth", help="truth .npz of a synthetic take (default: next to the capture)")
+    p.add_argument("--chunks", type=int, default=1,
+                   help="split the take into independent chunks (each starts from rest); under "
+                        "mpirun the ranks share them out")
+    p.add_argument("--chunk", type=int, help="fit only this chunk (for separate processes)")
 
     args, petsc_args = parser.parse_known_args(argv)
     # Unparsed -face_* arguments are PETSc options (e.g. -face_pc_type hypre).

@@ -77,3 +77,24 @@ def test_synth_fit_and_resume_after_a_kill(builtin_model_path, shared_tmp):
     assert np.abs(again - before).max() < 1e-2
     with pytest.raises(FileExistsError, match="finished run"):
         main(["fit", str(take), *model, "--out", str(out)])
+
+
+def test_chunks_in_ranks_or_separate_processes(builtin_model_path, shared_tmp):
+    """A take split into 2 chunks (each starting from rest) gives every frame; under mpirun -n 2
+    the ranks fit one chunk each; run chunk by chunk, the second call completes the tables."""
+    import numpy as np
+    take = shared_tmp / "take.trc"
+    model = ["--model", str(builtin_model_path)]
+    assert main(["synth", *model, "--frames", "4", "--noise", "0.0", "--out", str(take)]) == 0
+    together = shared_tmp / "chunks"
+    assert main(["fit", str(take), *model, "--chunks", "2", "--gn-steps", "6", "--out", str(together)]) == 0
+    frames = np.loadtxt(together / "frames.csv", delimiter=",", skiprows=1, usecols=(0, 1, 10))
+    assert list(frames[:, 0]) == [0, 1, 2, 3]
+    assert frames[:, 1].max() < 0.05  # marker RMS (mm), noise-free take
+    assert frames[:, 2].max() < 0.02  # activation error against the truth
+
+    apart = shared_tmp / "apart"
+    assert main(["fit", str(take), *model, "--chunks", "2", "--chunk", "1", "--out", str(apart)]) == 0
+    assert (apart / "IN_PROGRESS").exists() and not (apart / "frames.csv").exists()
+    assert main(["fit", str(take), *model, "--chunks", "2", "--chunk", "0", "--out", str(apart)]) == 0
+    assert (apart / "frames.csv").exists() and not (apart / "IN_PROGRESS").exists()
