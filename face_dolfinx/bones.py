@@ -37,9 +37,6 @@ class AffineMap:
         return AffineMap((1 - t) * self.matrix + t * other.matrix,
                          (1 - t) * self.translation + t * other.translation)
 
-    def is_identity(self) -> bool:
-        return np.allclose(self.matrix, np.eye(3), atol=0, rtol=0) and not self.translation.any()
-
 
 def rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     """Rotation matrix about a unit ``axis`` by ``angle`` radians (right hand rule)."""
