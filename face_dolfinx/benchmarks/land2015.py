@@ -448,7 +448,8 @@ def main(argv=None) -> None:
     if args.formulation == "mixed" and args.degree < 2:
         parser.error("--formulation mixed is Taylor-Hood P2/P1: use --degree 2")
 
-    logging.basicConfig(level=logging.INFO)  # the solver reports its continuation steps
+    # The solver reports its continuation steps at INFO (dolfinx has already configured logging).
+    logging.getLogger("face_dolfinx").setLevel(logging.INFO)
     start = time.perf_counter()
     try:
         result = run(args.problem, args.refine, args.formulation, args.degree,
