@@ -25,7 +25,8 @@ def peak_memory_gb(comm) -> float:
     return comm.allreduce(kilobytes, op=MPI.SUM) / 1024**2
 
 
-def run_resolution(target_tets: int, expressions: list[str], degree: int) -> dict:
+def run_resolution(target_tets: int, expressions: list[str], degree: int,
+                   reuse_factorization: bool = False) -> dict:
     from face_dolfinx.anatomy import build_builtin_face
     from face_dolfinx.bones import AffineMap, jaw_pose
     from face_dolfinx.model import load_model
@@ -39,10 +40,11 @@ def run_resolution(target_tets: int, expressions: list[str], degree: int) -> dic
     model = load_model(path, comm)
     t_load = time.perf_counter() - t0
     t0 = time.perf_counter()
-    problem = FaceProblem(model, degree=degree)
+    problem = FaceProblem(model, degree=degree, reuse_factorization=reuse_factorization)
     t_setup = time.perf_counter() - t0
     row = dict(target_tets=target_tets, tets=model.mesh.topology.index_map(3).size_global,
                dofs=3 * problem.V.dofmap.index_map.size_global, ranks=comm.size, degree=degree,
+               reuse_factorization=reuse_factorization,
                build_s=round(t_build, 2), load_s=round(t_load, 2), setup_s=round(t_setup, 2),
                solves={})
     for name in expressions:
@@ -53,22 +55,26 @@ def run_resolution(target_tets: int, expressions: list[str], degree: int) -> dic
         problem.solve(activations=np.zeros(problem.num_muscles), jaw=AffineMap())
         comm.barrier()
         t0 = time.perf_counter()
+        factorizations = problem.solver.factorizations
         report = problem.solve(activations=spec, jaw=jaw)
         comm.barrier()
         row["solves"][name] = dict(seconds=round(time.perf_counter() - t0, 2),
-                                   newton=report.newton_iterations, load_steps=report.load_steps)
+                                   newton=report.newton_iterations, load_steps=report.load_steps,
+                                   factorizations=problem.solver.factorizations - factorizations)
     row["peak_memory_gb"] = round(peak_memory_gb(comm), 2)
     return row
 
 
-TABLE_HEADER = ("| tets | dofs | ranks | build s | setup s | expression | solve s | Newton its | "
-                "load steps | peak memory GB |\n|---|---|---|---|---|---|---|---|---|---|\n")
+TABLE_HEADER = ("| tets | dofs | ranks | factor reuse | build s | setup s | expression | solve s | "
+                "Newton its | factorisations | load steps | peak memory GB |\n"
+                "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
 
 
 def markdown_rows(row: dict) -> str:
     return "".join(
-        f"| {row['tets']} | {row['dofs']} | {row['ranks']} | {row['build_s']} | {row['setup_s']} | "
-        f"{name} | {s['seconds']} | {s['newton']} | {s['load_steps']} | {row['peak_memory_gb']} |\n"
+        f"| {row['tets']} | {row['dofs']} | {row['ranks']} | {'yes' if row.get('reuse_factorization') else 'no'} | "
+        f"{row['build_s']} | {row['setup_s']} | {name} | {s['seconds']} | {s['newton']} | "
+        f"{s.get('factorizations', s['newton'])} | {s['load_steps']} | {row['peak_memory_gb']} |\n"
         for name, s in row["solves"].items())
 
 
@@ -77,17 +83,19 @@ def main():
     parser.add_argument("--tets", type=int, nargs="+", default=[5000, 20000, 50000])
     parser.add_argument("--expressions", nargs="+", default=["smile", "jaw_open"])
     parser.add_argument("--degree", type=int, default=1)
+    parser.add_argument("--reuse-factorization", action="store_true",
+                        help="MUMPS factor kept as a GMRES preconditioner across Newton iterations")
     parser.add_argument("--collect", nargs="+", metavar=("TABLE", "JSONL"),
                         help="write a Markdown table TABLE from JSON-lines files")
     args = parser.parse_args()
     if args.collect:
         table, *sources = args.collect
         rows = [json.loads(line) for src in sources for line in pathlib.Path(src).read_text().splitlines() if line]
-        rows.sort(key=lambda r: (r["tets"], r["ranks"]))
+        rows.sort(key=lambda r: (r["tets"], r["ranks"], r.get("reuse_factorization", False)))
         pathlib.Path(table).write_text(TABLE_HEADER + "".join(markdown_rows(r) for r in rows))
         return
     for target in args.tets:
-        row = run_resolution(target, args.expressions, args.degree)
+        row = run_resolution(target, args.expressions, args.degree, args.reuse_factorization)
         if MPI.COMM_WORLD.rank == 0:
             print(json.dumps(row), flush=True)
 

@@ -33,6 +33,7 @@ from .solver import EquilibriumError
 log = logging.getLogger(__name__)
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+MIN_TRUST_RADIUS = 0.01
 TMJ_STEP = 1e-6  # central-difference step of the closed-form jaw pose (rad, mm)
 
 
@@ -51,6 +52,11 @@ class FitSettings:
     fit_jaw: bool = True
     unreachable_rms: float = 3.0        # mm: a frame fitted worse than this is flagged
     reuse_jacobian: bool = True         # first step of a frame: the last frame's J, turned with the head
+    # Exact mode: trust region on the activation step (max |da|), adapted within a frame by how
+    # well the linear prediction matched (doubles on agreement, halves otherwise). Noise in
+    # poorly identified muscle combinations otherwise moves activations by 0.5 in one step, and
+    # each such step then costs 10+ Newton iterations at equilibrium.
+    activation_trust_radius: float = 0.1
     penalty_growth: float = 1.05        # paper mode: rho_{i+1} = 1.05 rho_i
     penalty_final_ratio: float = 1e6    # ... until rho = 1e6 phi(c)
 
@@ -219,7 +225,8 @@ class FaceFitter:
         if state.mode == "exact":
             lower = np.full(A.shape[1], -np.inf)
             upper = np.full(A.shape[1], np.inf)
-            lower[:n], upper[:n] = -state.activations, 1.0 - state.activations
+            lower[:n] = np.maximum(-state.activations, -self.trust_radius)
+            upper[:n] = np.minimum(1.0 - state.activations, self.trust_radius)
             if jaw:
                 geometry = self.jaw_geometry
                 limits_low = np.array([0.0, 0.0, 0.0])
@@ -330,6 +337,8 @@ class FaceFitter:
             return self._result(frame, targets, present, 0, start, phases, flag)
 
         state = self.state
+        # From rest (the first frame) the activations have far to go.
+        self.trust_radius = settings.activation_trust_radius if self.frames_done else 1.0
         if state.mode == "paper":
             spread = np.nanstd(targets[present]) if present.any() else 1.0
             self._rho_start = 1e-6 * spread**2
@@ -365,6 +374,9 @@ class FaceFitter:
             except EquilibriumError:
                 candidate_objective = math.inf
             phases["equilibrium"] += time.perf_counter() - t0
+            if state.mode == "exact":
+                predicted = np.sum(residual**2) - np.sum((residual + np.tensordot(step, jac, axes=1))**2)
+                self._adapt_trust_radius(step, objective - candidate_objective, predicted)
             if candidate_objective < objective:
                 accepted, new_objective = candidate, candidate_objective
             else:
@@ -392,6 +404,14 @@ class FaceFitter:
             result.flag = (f"targets not reachable: marker RMS {result.rms_error:.2f} mm after "
                            f"{steps} Gauss-Newton steps (threshold {settings.unreachable_rms} mm)")
         return result
+
+    def _adapt_trust_radius(self, step, actual_decrease, predicted_decrease) -> None:
+        n = self.problem.num_muscles
+        agreement = actual_decrease / predicted_decrease if predicted_decrease > 0 else -math.inf
+        if agreement > 0.75 and np.abs(step[:n]).max(initial=0.0) >= 0.99 * self.trust_radius:
+            self.trust_radius = min(2.0 * self.trust_radius, 1.0)
+        elif agreement < 0.25:
+            self.trust_radius = max(0.5 * self.trust_radius, MIN_TRUST_RADIUS)
 
     def _line_search(self, state, candidate, base_u, targets, present, objective):
         """Golden-section search for t in (0, 1) along the step; None if nothing improves."""

@@ -23,7 +23,7 @@ import dolfinx.fem.petsc as fem_petsc
 
 import forms
 from .bones import AffineMap
-from .solver import QuasistaticSolver, SolveReport, compile_form
+from .solver import InversionGuard, QuasistaticSolver, SolveReport, compile_form
 
 log = logging.getLogger(__name__)
 
@@ -120,10 +120,12 @@ class FaceProblem:
         2 for P2; FFCx's own estimate for these forms is far too high.
     petsc_options : PETSc options for the SNES/KSP/PC (prefix ``face_``), e.g.
         {"pc_type": "hypre", "ksp_type": "cg"} to try AMG instead of MUMPS Cholesky.
+    reuse_factorization : keep the last MUMPS factor as a GMRES preconditioner across Newton
+        iterations and solves, refactorising only when GMRES slows down (see solver.py).
     """
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
-                 petsc_options: dict | None = None):
+                 petsc_options: dict | None = None, reuse_factorization: bool = False):
         self.model = model
         mesh = self.mesh = model.mesh
         self.comm = mesh.comm
@@ -155,7 +157,9 @@ class FaceProblem:
         self.bone_blocks = np.concatenate([self.cranium_blocks, self.mandible_blocks])
         self.bcs = [fem.dirichletbc(self.bone_displacement, self.bone_blocks)]
         self.solver = QuasistaticSolver(residual, self.u, self.bcs, energy=energy,
-                                        petsc_options=petsc_options)
+                                        petsc_options=petsc_options,
+                                        inversion_guard=InversionGuard(self.V),
+                                        reuse_factorization=reuse_factorization)
         self.controls = Controls(np.zeros(self.num_muscles), AffineMap(), AffineMap())
         self._set_controls(self.controls)
 
@@ -243,7 +247,9 @@ class FaceProblem:
         if guess is not None:
             began = time.perf_counter()
             equilibrium = self.u.x.array.copy()
-            self.u.x.array[:] = guess
+            # A long linear prediction can invert elements: pull it back towards the equilibrium.
+            fraction = self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - guess)
+            self.u.x.array[:] = equilibrium + fraction * (guess - equilibrium)
             self._set_controls(target)
             ok, iterations, why = self.solver.newton()
             if ok:

@@ -4,49 +4,33 @@ At an equilibrium f(X(c), c) = 0, with K the tangent (identity rows on Dirichlet
   activations       K dX/da_i = f_i                                   (eq. 5)
   bone-driven b_i   K dX/db_i = -K_UC dX^C/db_i, and dX^C/db_i on C   (eq. 6, by lifting)
   cranium frame     dX/db_i = (dM_c/db_i) y + dt_c/db_i,  y = M_c^-1 (x - t_c)   (analytic)
-One factorisation of K serves every right-hand side.
+One factorisation of K serves every right-hand side; it is the equilibrium solver's own (same
+matrix, same KSP), so with factorisation reuse the next Newton solves start from it too.
 """
 from petsc4py import PETSc
 import numpy as np
 from dolfinx import fem
 import dolfinx.fem.petsc as fem_petsc
 
-from .solver import DEFAULT_PETSC_OPTIONS
-
-LINEAR_SOLVER_OPTIONS = {k: v for k, v in DEFAULT_PETSC_OPTIONS.items() if not k.startswith("snes_")}
-
 
 class EquilibriumSensitivity:
     """Columns of dX/dc at the problem's current equilibrium, as local dof arrays."""
 
-    def __init__(self, problem, petsc_options: dict | None = None,
-                 options_prefix: str = "face_sensitivity_"):
+    def __init__(self, problem):
         self.problem = problem
-        self.tangent = fem_petsc.create_matrix(problem.solver.jacobian_form)
-        self.tangent.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-        self.ksp = PETSc.KSP().create(problem.comm)
-        self.ksp.setOptionsPrefix(options_prefix)
-        opts = PETSc.Options()
-        for key, value in {**LINEAR_SOLVER_OPTIONS, **(petsc_options or {})}.items():
-            if not opts.hasName(options_prefix + key):
-                opts[options_prefix + key] = value
-        self.ksp.setFromOptions()
+        self.solver = problem.solver
         self._rhs = problem.u.vector.duplicate()
         self._solution = problem.u.vector.duplicate()
         self._lift = fem.Function(problem.V)
         self._lift_bc = fem.dirichletbc(self._lift, problem.bone_blocks)
+        self.krylov_iterations = 0
 
     def factor(self) -> None:
         """Assemble and factorise the tangent at the current shape."""
-        K = self.tangent
-        K.zeroEntries()
-        fem_petsc.assemble_matrix(K, self.problem.solver.jacobian_form, bcs=self.problem.bcs)
-        K.assemble()
-        self.ksp.setOperators(K)
-        self.ksp.setUp()
+        self.solver.factorize()
 
     def _solve(self) -> np.ndarray:
-        self.ksp.solve(self._rhs, self._solution)
+        self.krylov_iterations += self.solver.solve_tangent(self._rhs, self._solution)
         self._solution.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         with self._solution.localForm() as local:
             return local.array.copy()

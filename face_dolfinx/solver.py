@@ -41,6 +41,31 @@ DEFAULT_PETSC_OPTIONS = {
     "mat_mumps_icntl_14": 80,
 }
 
+# Factorisation reuse (``reuse_factorization=True``): the last MUMPS factor preconditions GMRES
+# on the current tangent, across Newton iterations and across solves; it is refreshed when GMRES
+# needs more than ``max_krylov_iterations`` or fails. A factorisation costs ten to twenty
+# preconditioned GMRES iterations at 200K dofs, and between nearby equilibria (the frames of a
+# take, the Newton iterates near convergence) the old factor is nearly exact.
+REUSE_PETSC_OPTIONS = {
+    "ksp_type": "gmres",
+    "ksp_gmres_restart": 40,
+    "ksp_rtol": 1e-8,
+    "ksp_atol": 1e-12,
+    "ksp_max_it": 40,
+    # SNES builds the preconditioner at its first Jacobian and never again on its own (-2 means
+    # once, then -1); _assemble_tangent refactorises when needed.
+    "snes_lag_preconditioner": -2,
+    "snes_lag_preconditioner_persists": True,
+}
+
+# Inversion guard (see InversionGuard, _guard_step_length): measured on the 50K face (rest -> smile,
+# jaw opening, pucker), cp capped at lambda <= 1 stalled on the pucker and uncapped ran into
+# inverted elements; a cap of 2 with stall detection converged all three without continuation
+# except the jaw opening.
+GUARDED_MAX_LAMBDA = 2.0
+STALLED_GUARD_FRACTION = 0.25
+STALLED_GUARD_ITERATIONS = 3
+
 # Form compiler flags: -O2 keeps JIT time short for these long nonlinear kernels.
 JIT_OPTIONS = {"cffi_extra_compile_args": ["-O3", "-march=native"], "cache_dir": None}
 
@@ -74,6 +99,52 @@ def global_sum(comm: MPI.Comm, local_value: float) -> float:
     return comm.allreduce(local_value, op=MPI.SUM)
 
 
+class InversionGuard:
+    """Shortens a Newton step that would flatten or invert a tetrahedron.
+
+    Far from equilibrium (rest -> all muscles on, a wide jaw opening) the full Newton step of this
+    stiff, nearly incompressible material inverts elements; the residual is then NaN and the whole
+    solve used to be thrown away for continuation. Before the line search, the step is halved until
+    every cell keeps at least ``min_volume_ratio`` of its rest volume (measured on the cell's
+    vertices, exact for P1, the straight-sided part of a P2 cell). Cheap: a few numpy determinants
+    per cell and Newton iteration.
+    """
+
+    def __init__(self, space: fem.FunctionSpace, min_volume_ratio: float = 0.1, max_halvings: int = 12):
+        num_cells = space.mesh.topology.index_map(3).size_local + space.mesh.topology.index_map(3).num_ghosts
+        # Basix numbers the vertex dofs of a tetrahedron first, for P1 and P2 alike.
+        self.vertex_blocks = space.dofmap.list.array.reshape(num_cells, -1)[:, :4]
+        self.rest = space.tabulate_dof_coordinates()[:, :3]
+        self.rest_volume = _signed_volumes(self.rest[self.vertex_blocks])
+        self.min_volume_ratio = min_volume_ratio
+        self.max_halvings = max_halvings
+        self.comm = space.mesh.comm
+
+    def min_ratio(self, displacement: np.ndarray) -> float:
+        """Smallest current/rest volume ratio over all cells of all ranks."""
+        points = self.rest[self.vertex_blocks] + displacement.reshape(-1, 3)[self.vertex_blocks]
+        local = float((_signed_volumes(points) / self.rest_volume).min(initial=np.inf))
+        return self.comm.allreduce(local, op=MPI.MIN)
+
+    def step_fraction(self, displacement: np.ndarray, step: np.ndarray, largest: float = 1.0) -> float:
+        """Largest ``largest`` * 2^-k such that displacement - that * step keeps every cell above
+        the bound (or, if a cell is already below it, does not halve its volume again)."""
+        now = self.min_ratio(displacement)
+        bound = min(self.min_volume_ratio, 0.5 * now)
+        fraction = largest
+        for _ in range(self.max_halvings):
+            if self.min_ratio(displacement - fraction * step) >= bound:
+                return fraction
+            fraction *= 0.5
+        return fraction
+
+
+def _signed_volumes(points: np.ndarray) -> np.ndarray:
+    """Six times the signed volume of tetrahedra given as (cells, 4, 3) vertex positions."""
+    edges = points[:, 1:] - points[:, :1]
+    return np.linalg.det(edges)
+
+
 class QuasistaticSolver:
     """Newton (SNES) for R(u) = 0 with Dirichlet conditions ``bcs`` whose values the owner sets.
 
@@ -83,8 +154,17 @@ class QuasistaticSolver:
 
     def __init__(self, residual: ufl.Form, unknown: fem.Function, bcs: list, *,
                  jacobian: ufl.Form | None = None, energy: ufl.Form | None = None,
-                 petsc_options: dict | None = None, options_prefix: str = "face_"):
+                 petsc_options: dict | None = None, options_prefix: str = "face_",
+                 inversion_guard: InversionGuard | None = None,
+                 reuse_factorization: bool = False, max_krylov_iterations: int = 12):
         self.unknown = unknown
+        self.inversion_guard = inversion_guard
+        self.reuse_factorization = reuse_factorization
+        self.max_krylov_iterations = max_krylov_iterations
+        self.factorizations = 0     # numerical factorisations so far (a cost counter)
+        self._factor_is_current = False  # the factor belongs to the tangent at the unknown
+        self._refresh_factor = True
+        self._snes_factored_once = False
         self.bcs = bcs
         self.comm = unknown.function_space.mesh.comm
         self.residual_form = compile_form(residual)
@@ -101,8 +181,11 @@ class QuasistaticSolver:
         self.snes = PETSc.SNES().create(self.comm)
         self.snes.setOptionsPrefix(options_prefix)
         opts = PETSc.Options()
+        defaults = {**DEFAULT_PETSC_OPTIONS, **(REUSE_PETSC_OPTIONS if reuse_factorization else {})}
+        if inversion_guard is not None:
+            defaults["snes_linesearch_maxstep"] = GUARDED_MAX_LAMBDA
         wanted = {options_prefix + key: value
-                  for key, value in {**DEFAULT_PETSC_OPTIONS, **(petsc_options or {})}.items()}
+                  for key, value in {**defaults, **(petsc_options or {})}.items()}
         # The options database is global to the process: drop what an earlier solver with this
         # prefix put there and this one does not want, and overwrite the rest, so that each
         # solver gets its own petsc_options. A user's command-line PETSc option still wins.
@@ -116,6 +199,11 @@ class QuasistaticSolver:
                 ours.add(name)
         self.snes.setFunction(self._assemble_residual, self._residual_vector)
         self.snes.setJacobian(self._assemble_tangent, self.tangent)
+        if inversion_guard is not None:
+            self._guard_cuts = 0
+            self.snes.setConvergenceTest(self._converged)
+            self._guard_x, self._guard_step = unknown.vector.duplicate(), unknown.vector.duplicate()
+            self.snes.setLineSearchPreCheck(self._guard_step_length)
         self.snes.setFromOptions()
         self.snes.getKSP().setFromOptions()
 
@@ -137,10 +225,92 @@ class QuasistaticSolver:
         b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         fem_petsc.set_bc(b, self.bcs, x, -1.0)
 
+    def _guard_step_length(self, x, step):
+        """Line-search pre-check: the next iterate is x - lambda step with lambda at most
+        GUARDED_MAX_LAMBDA (cp extrapolates when the energy still falls at lambda = 1, unbounded
+        it ran into inverted elements); shorten the step so that no such lambda inverts an
+        element. A Newton direction that keeps pointing into inversion is cut again and again:
+        after STALLED_GUARD_ITERATIONS such cuts in a row, Newton gives up (the continuation
+        fallback takes over) instead of crawling to the iteration limit."""
+        for source, work in ((x, self._guard_x), (step, self._guard_step)):
+            source.copy(work)
+            work.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        with self._guard_x.localForm() as x_local, self._guard_step.localForm() as step_local:
+            fraction = self.inversion_guard.step_fraction(
+                x_local.array_r, step_local.array_r, GUARDED_MAX_LAMBDA) / GUARDED_MAX_LAMBDA
+        self._guard_cuts = self._guard_cuts + 1 if fraction < STALLED_GUARD_FRACTION else 0
+        if fraction < 1.0:
+            step.scale(fraction)
+            return True
+        return False
+
+    def _converged(self, snes, iteration, norms):
+        """PETSc's default test (atol, rtol, stol, max_it, NaN) plus the guard's stall test."""
+        xnorm, step_norm, fnorm = norms
+        rtol, atol, stol, max_it = snes.getTolerances()
+        reasons = PETSc.SNES.ConvergedReason
+        if iteration == 0:
+            self._guard_cuts, self._initial_fnorm = 0, fnorm
+        if not np.isfinite(fnorm):
+            return reasons.DIVERGED_FNORM_NAN
+        if fnorm < atol:
+            return reasons.CONVERGED_FNORM_ABS
+        if iteration > 0 and fnorm < rtol * self._initial_fnorm:
+            return reasons.CONVERGED_FNORM_RELATIVE
+        if iteration > 0 and step_norm < stol * xnorm:
+            return reasons.CONVERGED_SNORM_RELATIVE
+        if iteration >= max_it:
+            return reasons.DIVERGED_MAX_IT
+        if self._guard_cuts >= STALLED_GUARD_ITERATIONS:
+            return reasons.DIVERGED_LINE_SEARCH
+        return reasons.CONVERGED_ITERATING
+
     def _assemble_tangent(self, snes, x, A, P):
         A.zeroEntries()
         fem_petsc.assemble_matrix(A, self.jacobian_form, bcs=self.bcs)
         A.assemble()
+        if not self.reuse_factorization:
+            self.factorizations += 1
+            return
+        ksp = snes.getKSP()
+        slow = ksp.getIterationNumber() > self.max_krylov_iterations
+        refresh = self._refresh_factor or slow or not self._snes_factored_once
+        if not self._snes_factored_once:  # SNES's own (lag -2) build
+            self._snes_factored_once = True
+            self.factorizations += 1
+        elif refresh:
+            self._factor(A)
+        self._refresh_factor = False
+        self._factor_is_current = refresh
+
+    def _factor(self, A: PETSc.Mat) -> None:
+        # Set up the PC now: SNES (lag -1) then leaves it as it is.
+        ksp = self.snes.getKSP()
+        ksp.setOperators(A, A)
+        ksp.getPC().setReusePreconditioner(False)
+        ksp.setUp()
+        ksp.getPC().setUp()
+        ksp.getPC().setReusePreconditioner(self.reuse_factorization)
+        self.factorizations += 1
+
+    def factorize(self) -> None:
+        """Assemble and factorise the tangent at the unknown (for sensitivities; in reuse mode
+        the factor then also serves the next Newton solves)."""
+        self.unknown.vector.copy(self._solution)
+        A = self.tangent
+        A.zeroEntries()
+        fem_petsc.assemble_matrix(A, self.jacobian_form, bcs=self.bcs)
+        A.assemble()
+        self._factor(A)
+        self._factor_is_current = True
+
+    def solve_tangent(self, rhs: PETSc.Vec, out: PETSc.Vec) -> int:
+        """out = K^-1 rhs with the current factor (exact after ``factorize``); Krylov iterations."""
+        ksp = self.snes.getKSP()
+        ksp.solve(rhs, out)
+        if ksp.getConvergedReason() < 0:
+            raise EquilibriumError(f"tangent solve failed ({ksp.getConvergedReason()})")
+        return ksp.getIterationNumber()
 
     # -- public ------------------------------------------------------------------------------
     def energy(self) -> float:
@@ -157,8 +327,14 @@ class QuasistaticSolver:
         """One SNES solve from the current unknown; Dirichlet values are reached by the Newton steps."""
         self.unknown.vector.copy(self._solution)
         self.snes.solve(None, self._solution)
-        self._set_unknown(self._solution)
         reason = self.snes.getConvergedReason()
+        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE and not self._factor_is_current:
+            # GMRES with an old factor failed: refactorise and try once more.
+            self._refresh_factor = True
+            self.unknown.vector.copy(self._solution)
+            self.snes.solve(None, self._solution)
+            reason = self.snes.getConvergedReason()
+        self._set_unknown(self._solution)
         if reason > 0 and self.bc_error() > 1e-8:
             return False, self.snes.getIterationNumber(), "Dirichlet values not reached"
         return reason > 0, self.snes.getIterationNumber(), _reason_name(reason)

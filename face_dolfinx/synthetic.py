@@ -93,9 +93,16 @@ def synthesize_take(problem, markers, model, scenario: str = "speech", n_frames:
                     frame_rate: float = 60.0, noise: float = 0.5, outliers: int = 0,
                     outlier_size: float = 10.0, gaps: int = 0, head_motion: bool = True,
                     seed: int = 0, marker_names: list[str] | None = None,
-                    progress=None) -> tuple[Capture, TakeTruth]:
-    """Solve the face along a scenario and sample ``markers`` (a fitting.MarkerSet)."""
+                    progress=None, frames: range | None = None) -> tuple[Capture, TakeTruth]:
+    """Solve the face along a scenario and sample ``markers`` (a fitting.MarkerSet).
+
+    ``frames`` (default all): solve and return only these frames of the ``n_frames``-long take,
+    e.g. a stretch of a long take at its real frame spacing for a benchmark.
+    """
     activations, tmj, head = control_curves(model, scenario, n_frames, head_motion, seed)
+    if frames is not None:
+        activations, tmj, head = activations[frames], tmj[frames], [head[f] for f in frames]
+        n_frames = len(frames)
     clean = np.zeros((n_frames, len(markers.reference), 3))
     for frame in range(n_frames):
         problem.solve(activations=activations[frame], cranium=head[frame],
