@@ -164,22 +164,25 @@ def fit(model, args) -> None:
     from .fitting import FaceFitter, FitSettings, MarkerSet, chunk_ranges
     from .model import load_model
     from .problem import FaceProblem
-    from .results import FitFolder
+    from .results import FitFolder, atomic_write_text
     comm = MPI.COMM_WORLD
     capture_path = pathlib.Path(args.capture)
-    capture = read_capture(capture_path, units=args.units, up_axis=args.up_axis)
-    unknown = [n for n in capture.marker_names if n not in model.markers]
-    if unknown:
-        raise SystemExit(f"{capture_path}: markers {', '.join(unknown[:5])}{' ...' if len(unknown) > 5 else ''} "
-                         f"are not marker sites of model {model.name}; this capture needs aligning to "
-                         f"the model first")
+    # Every input is checked before the result folder exists: a bad input leaves nothing behind.
+    capture = read_capture(capture_path, units=args.units, up_axis=args.up_axis,
+                           check_scale=not args.no_scale_check)
+    placement = _place_capture(model, capture, args)
+    capture = placement.aligned(capture)
     truth_file = pathlib.Path(args.truth) if args.truth else truth_path(capture_path)
     truth = load_truth(truth_file) if truth_file.exists() else None
     settings = FitSettings(mode=args.mode, max_gn_steps=args.gn_steps,
                            temporal_smoothness=args.smoothness)
     run = dict(capture=str(capture_path.resolve()), model=str(model.path), mode=args.mode,
                gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames)
+    run.update(alignment=placement.method, neutral_frame=placement.neutral_frame,
+               correspondence=str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None)
+    alignment_record = json.dumps(placement.to_json(), indent=2)
     folder = _root_first(lambda: FitFolder(args.out, run, overwrite=args.overwrite))
+    _root_first(lambda: atomic_write_text(folder.path / "alignment.json", alignment_record))
     done = _root_first(folder.finished_frames)
     chunks = chunk_ranges(capture.n_frames, args.chunks)
     if args.chunk is not None:  # one chunk in this (separate) process
@@ -192,8 +195,7 @@ def fit(model, args) -> None:
     group_comm = comm.Split(group, comm.rank) if groups > 1 else comm
     group_model = load_model(model.path, group_comm) if groups > 1 else model
     problem = FaceProblem(group_model)
-    sites = np.array([model.markers[n] for n in capture.marker_names])
-    markers = MarkerSet(problem, sites, names=capture.marker_names)
+    markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
     for chunk in chunks[group::groups]:
         todo = [f for f in chunk if f not in done]
         if not todo:
@@ -223,6 +225,33 @@ def fit(model, args) -> None:
     log.info("results: %s", pathlib.Path(args.out).resolve())
 
 
+def _place_capture(model, capture, args):
+    """The capture's alignment to the model and its markers on the skin (``placement``), logged.
+
+    Computed on rank 0 and sent to the others, so that every rank fits the same markers.
+    """
+    from .align import read_correspondence_file
+    from .placement import place_capture
+    from .surface import SkinSurface
+    skin_points, skin_triangles = model.skin_surface()  # collective
+
+    def place():
+        correspondence = read_correspondence_file(args.correspondence) if args.correspondence else None
+        return place_capture(capture, args.neutral_frame, SkinSurface(skin_points, skin_triangles),
+                             model.markers, model.landmarks, correspondence)
+    placement = _root_first(place)
+    log.info("%s", placement.summary())
+    if placement.doubtful:
+        reasons = (placement.details["warning"] if placement.quality is None
+                   else placement.quality.verdict.removeprefix("doubtful: "))
+        advice = ("check the correspondences" if placement.method == "correspondence" else
+                  "give --correspondence (capture marker -> model landmark) for a reliable alignment")
+        log.warning("the alignment of %s to model %s is doubtful: %s. The fit goes on, but its results are "
+                    "only as good as the alignment: %s, or adapt the model to the subject (build --subject)",
+                    capture.source, model.name, reasons, advice)
+    return placement
+
+
 def _warm_start(fitter, last) -> None:
     """Continue a fit from a finished frame: its controls and the equilibrium there."""
     fitter.state.activations = last.activations.copy()
@@ -245,6 +274,20 @@ def _render_expression(problem, path: pathlib.Path, title: str) -> None:
 
 
 def main(argv=None) -> int:
+    """Run a command line; errors in what the user gave (files, options) end it with one message."""
+    from .align import AlignmentError
+    from .capture import CaptureError
+    from .config import ConfigError
+    from .model import ModelError
+    try:
+        return _main(argv)
+    except (AlignmentError, CaptureError, ConfigError, ModelError) as error:
+        raise SystemExit(f"face-dolfinx: error: {error}") from None
+
+
+def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
+    """The options of a command line, with those of its --config file under them; and the PETSc
+    options (-face_*). Wrong or missing options end it with a usage message (SystemExit 2)."""
     parser = argparse.ArgumentParser(prog="face-dolfinx", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true")
@@ -263,7 +306,7 @@ def main(argv=None) -> int:
         p.add_argument("--overwrite", action="store_true", help="replace an existing result folder")
         p.add_argument("--no-render", action="store_true", help="skip the PNG renders")
         if name == "simulate":
-            p.add_argument("expressions", nargs="+", help="expression names defined in the model")
+            p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     def model_options(p, out):
         p.add_argument("--model", help="model folder (default: the built-in face)")
@@ -284,9 +327,17 @@ def main(argv=None) -> int:
 
     p = sub.add_parser("fit", help="fit activations and bone motion to a take")
     model_options(p, "results/fit")
-    p.add_argument("capture", help="TRC, CSV or C3D file whose markers are model marker sites")
+    p.add_argument("capture", nargs="?", help="TRC, CSV or C3D file of the take")
+    p.add_argument("--correspondence",
+                   help="TOML or CSV: capture marker -> model landmark (>= 6), to align a capture whose "
+                        "markers are not the model's marker sites (without it: ICP against the skin)")
+    p.add_argument("--neutral-frame", type=int, default=0,
+                   help="frame of the take at rest: aligned to the model, its markers embedded in the skin")
     p.add_argument("--units", help="mm, cm or m when the file does not say")
     p.add_argument("--up-axis", choices=("Y", "Z"), help="vertical axis of the file")
+    p.add_argument("--no-scale-check", action="store_true",
+                   help="accept markers that do not span a face's 40-600 mm (needs the units stated, by the "
+                        "file or --units)")
     p.add_argument("--mode", choices=("exact", "paper"), default="exact")
     p.add_argument("--gn-steps", type=int, default=3, help="Gauss-Newton steps per frame")
     p.add_argument("--smoothness", type=float, default=0.0,
@@ -297,13 +348,30 @@ def main(argv=None) -> int:
                         "mpirun the ranks share them out")
     p.add_argument("--chunk", type=int, help="fit only this chunk (for separate processes)")
 
+    for command_parser in sub.choices.values():
+        command_parser.add_argument("--config", help="TOML file of options (docs/cli.md); flags given here win")
     args, petsc_args = parser.parse_known_args(argv)
+    if args.config:
+        from .config import option_defaults
+        shared, own = option_defaults(args.config, args.command, parser, sub.choices)
+        parser.set_defaults(**shared)
+        sub.choices[args.command].set_defaults(**own)
+        args, petsc_args = parser.parse_known_args(argv)
+    for command, positional in (("fit", "capture"), ("simulate", "expressions")):
+        if args.command == command and not getattr(args, positional):
+            sub.choices[command].error(f"the {positional} argument is required (on the command line or "
+                                       f"as {positional!r} in the --config file)")
     # Unparsed -face_* arguments are PETSc options (e.g. -face_pc_type hypre).
+    unknown = [a for a in petsc_args if not a.startswith("-face_") and not _is_value(a, petsc_args)]
+    if unknown:
+        parser.error(f"unrecognised arguments: {' '.join(unknown)}")
+    return args, petsc_args
+
+
+def _main(argv=None) -> int:
+    args, petsc_args = parse_arguments(argv)
     if petsc_args:
         from petsc4py import PETSc
-        unknown = [a for a in petsc_args if not a.startswith("-face_") and not _is_value(a, petsc_args)]
-        if unknown:
-            parser.error(f"unrecognised arguments: {' '.join(unknown)}")
         PETSc.Options().insertString(" ".join(petsc_args))
     _setup_logging(verbose=args.verbose)
 
