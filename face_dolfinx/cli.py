@@ -8,6 +8,7 @@ Subcommands:
   demo      the README's main job: build the default face, simulate a few expressions
 """
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -145,6 +146,63 @@ def synth(model, args) -> None:
     log.info("wrote %s (%d frames, %d markers) and its truth %s", out, args.frames, len(names), truth_path(out))
 
 
+def build_subject(args) -> None:
+    """Adapt a template model to a subject (a capture's neutral frame, or a surface scan) -> --out."""
+    from .align import read_correspondence_file
+    from .anatomy import build_builtin_face
+    from .capture import read_capture
+    from . import subject
+    source = "subject" if args.subject else "surface"
+    out = pathlib.Path(args.out)
+    template_path = pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets)
+
+    def adapt():
+        if out.exists() and not args.overwrite:  # before the work, not after
+            raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
+        template = subject.read_model_arrays(template_path)
+        if args.subject:
+            capture = read_capture(args.subject, units=args.units, up_axis=args.up_axis,
+                                   check_scale=not args.no_scale_check)
+            neutral = capture.neutral(args.neutral_frame)
+            correspondence = read_correspondence_file(args.correspondence)
+            inputs = dict(subject_capture=str(pathlib.Path(args.subject).resolve()),
+                          neutral_frame=args.neutral_frame % capture.n_frames,
+                          correspondence_file=str(pathlib.Path(args.correspondence).resolve()))
+            with _naming(args.subject):
+                adaptation = subject.adapt_to_markers(template, neutral, capture.marker_names, correspondence,
+                                                      name=out.name)
+        else:
+            scan = subject.read_surface(args.surface, units=args.units or "mm")
+            landmarks = subject.read_landmark_file(args.landmarks, scan, units=args.units or "mm")
+            inputs = dict(subject_surface=str(pathlib.Path(args.surface).resolve()),
+                          landmarks_file=str(pathlib.Path(args.landmarks).resolve()))
+            with _naming(args.surface):
+                adaptation = subject.adapt_to_surface(template, scan, landmarks, name=out.name)
+        worst = max(adaptation.distances, key=adaptation.distances.get)
+        info = dict(template=str(template_path.resolve()), template_name=template.name, **inputs,
+                    residual_rms_mm=adaptation.rms, residual_max_mm=adaptation.max,
+                    matching_rounds=adaptation.iterations)
+        subject.write_adapted_model(adaptation, out, info=info, overwrite=args.overwrite)
+        what = "markers" if args.subject else "skin nodes inside the scan"
+        return (f"adapted {template.name} to {getattr(args, source)}: the skin is RMS {adaptation.rms:.3f} mm, "
+                f"max {adaptation.max:.3f} mm ({worst}) from the subject's {len(adaptation.distances)} {what}; "
+                f"{adaptation.iterations} matching rounds"
+                f"{'' if adaptation.record['settled'] else ' (matches still sliding along the skin)'}")
+    log.info("%s", _root_first(adapt))
+    if MPI.COMM_WORLD.rank == 0:
+        print(out.resolve())
+
+
+@contextlib.contextmanager
+def _naming(path):
+    """Subject errors prefixed with the file they concern."""
+    from .subject import SubjectError
+    try:
+        yield
+    except SubjectError as error:
+        raise SubjectError(f"{path}: {error}") from None
+
+
 def truth_path(capture_path: pathlib.Path) -> pathlib.Path:
     return capture_path.with_name(capture_path.stem + ".truth.npz")
 
@@ -279,9 +337,10 @@ def main(argv=None) -> int:
     from .capture import CaptureError
     from .config import ConfigError
     from .model import ModelError
+    from .subject import SubjectError
     try:
         return _main(argv)
-    except (AlignmentError, CaptureError, ConfigError, ModelError) as error:
+    except (AlignmentError, CaptureError, ConfigError, ModelError, SubjectError) as error:
         raise SystemExit(f"face-dolfinx: error: {error}") from None
 
 
@@ -293,8 +352,22 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("-v", "--verbose", action="store_true")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    build = sub.add_parser("build", help="generate the built-in face model")
+    build = sub.add_parser("build", help="generate the built-in face model, or adapt a model to a subject")
     build.add_argument("--tets", type=int, default=50_000, help="target number of tetrahedra")
+    build.add_argument("--model", help="template model folder to adapt (default: the built-in face)")
+    build.add_argument("--subject", help="capture (TRC, CSV, C3D) whose neutral frame shapes the subject; "
+                                         "needs --correspondence")
+    build.add_argument("--surface", help="the subject's face surface (OBJ, STL, PLY, ...); needs --landmarks")
+    build.add_argument("--correspondence", help="TOML or CSV: capture marker -> model landmark (>= 6)")
+    build.add_argument("--landmarks", help="TOML or CSV: model landmark -> surface vertex id or [x, y, z]")
+    build.add_argument("--neutral-frame", type=int, default=0, help="frame of the subject capture at rest")
+    build.add_argument("--units", help="mm, cm or m: the capture's when it does not say, the surface's (default mm)")
+    build.add_argument("--up-axis", choices=("Y", "Z"), help="vertical axis of the capture file")
+    build.add_argument("--no-scale-check", action="store_true",
+                       help="accept a capture whose markers do not span a face's 40-600 mm (needs the units "
+                            "stated, by the file or --units)")
+    build.add_argument("--out", help="folder of the adapted model (with --subject or --surface)")
+    build.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
 
     for name, helptext in (("simulate", "shapes for named expressions"),
                            ("demo", "the main job: default face, a few expressions")):
@@ -361,6 +434,13 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
         if args.command == command and not getattr(args, positional):
             sub.choices[command].error(f"the {positional} argument is required (on the command line or "
                                        f"as {positional!r} in the --config file)")
+    if args.command == "build" and (args.subject or args.surface):
+        if args.subject and args.surface:
+            build.error("give --subject (a capture) or --surface (a scan), not both")
+        source, needed = ("subject", "correspondence") if args.subject else ("surface", "landmarks")
+        for option in (needed, "out"):
+            if not getattr(args, option):
+                build.error(f"--{source} needs --{option}")
     # Unparsed -face_* arguments are PETSc options (e.g. -face_pc_type hypre).
     unknown = [a for a in petsc_args if not a.startswith("-face_") and not _is_value(a, petsc_args)]
     if unknown:
@@ -377,6 +457,9 @@ def _main(argv=None) -> int:
 
     if args.command == "build":
         from .anatomy import build_builtin_face
+        if args.subject or args.surface:
+            build_subject(args)
+            return 0
         path = build_builtin_face(target_tets=args.tets)
         if MPI.COMM_WORLD.rank == 0:
             print(path)

@@ -44,7 +44,7 @@ tets = 9000
     args, _ = parse_arguments(["fit", "other.trc", "--config", str(config), "--out", "here"])
     assert (args.capture, args.out) == ("other.trc", "here")
     args, _ = parse_arguments(["build", "--config", str(config)])
-    assert args.tets == 9000
+    assert (args.tets, args.out) == (9000, "results/shared")
     args, _ = parse_arguments(["build", "--config", str(config), "--tets", "3000"])
     assert args.tets == 3000
 
