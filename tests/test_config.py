@@ -83,6 +83,19 @@ def test_mistakes_are_named(shared_tmp, text, message):
             main([*command, "--config", str(config)])
 
 
+def test_the_documented_example(shared_tmp):
+    """docs/cli.md's example is a valid file for every subcommand."""
+    document = (pathlib.Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
+    example = document.split("```toml\n", 1)[1].split("```", 1)[0]
+    config = write(shared_tmp / "session.toml", example)
+    args, _ = parse_arguments(["fit", "--config", str(config)])
+    assert (args.model, args.neutral_frame, args.units, args.tets) == ("models/subject01", 10, "mm", 20000)
+    args, _ = parse_arguments(["build", "--config", str(config)])
+    assert (args.subject, args.out, args.model) == ("captures/session01/neutral.c3d", "models/subject01", None)
+    for command in (["simulate", "smile"], ["synth"], ["demo"]):
+        parse_arguments([*command, "--config", str(config)])
+
+
 def test_missing_or_wrong_config_file(shared_tmp):
     with pytest.raises(SystemExit, match=r"absent\.toml: no such configuration file"):
         main(["build", "--config", str(shared_tmp / "absent.toml")])
