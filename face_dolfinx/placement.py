@@ -32,6 +32,8 @@ SUGGESTED_FRAMES = 5
 
 @dataclass(frozen=True, eq=False)
 class CapturePlacement:
+    """A capture aligned to the model: the transform, and each marker as a skin point plus offset."""
+
     method: str                    # "correspondence", "icp" or "model_sites"
     neutral_frame: int             # index of the neutral frame (0-based, non-negative)
     transform: Similarity          # capture -> model coordinates
