@@ -1,11 +1,14 @@
 """Command line of face_dolfinx (``python run.py ...`` or ``face-dolfinx ...``, also under mpirun).
 
 Subcommands:
-  build     generate the built-in face at a resolution and print the model folder
+  build     generate the built-in face at a resolution and print the model folder; with --subject
+            (a capture) or --surface (a scan), the face adapted to a subject
   simulate  equilibrium shapes for named expressions -> XDMF + PNG
   synth     a synthetic take of known truth (markers with noise, outliers, gaps) -> TRC/CSV/C3D
-  fit       a take -> activations, head and jaw motion per frame (resumable)
+  fit       a take -> activations, head and jaw motion per frame (resumable); a capture of your
+            own is aligned to the model first (--correspondence, or ICP)
   demo      the README's main job: build the default face, simulate a few expressions
+Every subcommand takes --config FILE.toml (docs/cli.md).
 """
 import argparse
 import contextlib
