@@ -11,6 +11,7 @@ are from the skin, and a verdict, "good" or "doubtful: <reasons>". See docs/alig
 from __future__ import annotations
 
 import csv
+import itertools
 import tomllib
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -25,8 +26,13 @@ MIN_CORRESPONDENCES = 6
 # Centred points whose second singular value is below this fraction of the first are collinear:
 # a rotation about their line is undetermined.
 COLLINEAR_RATIO = 1e-9
-# The four proper rotations that map principal axes onto principal axes (sign flips, det = +1).
-PROPER_AXIS_FLIPS = ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))
+# The 24 proper rotations that map principal axes onto principal axes, in any order and direction
+# (signed permutation matrices, det +1). Any order, not only largest variance onto largest: markers
+# cover the face, the skin also its sides and neck, so their axes need not rank alike; on the
+# built-in face the skin is about as wide as it is tall, and the markers much taller than wide.
+PROPER_AXIS_MAPS = tuple(np.diag(signs)[list(order)] for order in itertools.permutations(range(3))
+                         for signs in itertools.product((1, -1), repeat=3)
+                         if np.linalg.det(np.diag(signs)[list(order)]) > 0)
 # The rigid warm-up of a similarity ICP ends once an iteration lowers the objective by less than this.
 WARM_UP_DECREASE = 1e-3
 # Fractions of a point-to-plane step tried, in turn, until one lowers the objective.
@@ -237,8 +243,9 @@ def align_by_icp(capture_neutral, skin: SkinSurface, initial: Similarity | None 
 
     Gauss-Newton (point-to-plane) steps on the markers' distances to the skin, missing markers
     ignored, each step leaving out the worst ``trim_fraction`` of them as outliers (markers off the
-    modelled skin, e.g. on a head band); scale is freed once a rigid fit has settled. Without ``initial`` the start is the rough pose that matches centroids and principal
-    axes, tried with the four proper sign flips of the axes; the best fit wins, and another
+    modelled skin, e.g. on a head band); scale is freed once a rigid fit has settled. Without
+    ``initial`` the start is the rough pose that matches centroids and principal axes, tried with
+    each of the 24 proper rotations mapping axes onto axes; the best fit wins, and another
     orientation fitting about as well makes the verdict doubtful. Iterations stop when no marker
     moves more than ``tolerance_mm``. The quality covers every present marker, trimmed or not.
     """
@@ -468,12 +475,13 @@ class _PlaneStep:
 
 
 def _principal_axes_starts(points, skin) -> list[Similarity]:
-    """Rough poses matching the markers' centroid and principal axes to the skin's, one per proper flip."""
+    """Rough poses matching the markers' centroid and principal axes to the skin's, one per proper
+    map of axes onto axes."""
     marker_centroid, marker_axes = _principal_axes(points.mean(axis=0), np.cov(points.T, bias=True))
     skin_centroid, skin_axes = _principal_axes(*_surface_moments(skin))
     starts = []
-    for flip in PROPER_AXIS_FLIPS:
-        rotation = (skin_axes * flip) @ marker_axes.T
+    for axis_map in PROPER_AXIS_MAPS:
+        rotation = skin_axes @ axis_map @ marker_axes.T
         starts.append(Similarity(1.0, rotation, skin_centroid - rotation @ marker_centroid))
     return starts
 

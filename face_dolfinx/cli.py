@@ -1,13 +1,17 @@
 """Command line of face_dolfinx (``python run.py ...`` or ``face-dolfinx ...``, also under mpirun).
 
 Subcommands:
-  build     generate the built-in face at a resolution and print the model folder
+  build     generate the built-in face at a resolution and print the model folder; with --subject
+            (a capture) or --surface (a scan), the face adapted to a subject
   simulate  equilibrium shapes for named expressions -> XDMF + PNG
   synth     a synthetic take of known truth (markers with noise, outliers, gaps) -> TRC/CSV/C3D
-  fit       a take -> activations, head and jaw motion per frame (resumable)
+  fit       a take -> activations, head and jaw motion per frame (resumable); a capture of your
+            own is aligned to the model first (--correspondence, or ICP)
   demo      the README's main job: build the default face, simulate a few expressions
+Every subcommand takes --config FILE.toml (docs/cli.md).
 """
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -145,6 +149,63 @@ def synth(model, args) -> None:
     log.info("wrote %s (%d frames, %d markers) and its truth %s", out, args.frames, len(names), truth_path(out))
 
 
+def build_subject(args) -> None:
+    """Adapt a template model to a subject (a capture's neutral frame, or a surface scan) -> --out."""
+    from .align import read_correspondence_file
+    from .anatomy import build_builtin_face
+    from .capture import read_capture
+    from . import subject
+    source = "subject" if args.subject else "surface"
+    out = pathlib.Path(args.out)
+    template_path = pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets)
+
+    def adapt():
+        if out.exists() and not args.overwrite:  # before the work, not after
+            raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
+        template = subject.read_model_arrays(template_path)
+        if args.subject:
+            capture = read_capture(args.subject, units=args.units, up_axis=args.up_axis,
+                                   check_scale=not args.no_scale_check)
+            neutral = capture.neutral(args.neutral_frame)
+            correspondence = read_correspondence_file(args.correspondence)
+            inputs = dict(subject_capture=str(pathlib.Path(args.subject).resolve()),
+                          neutral_frame=args.neutral_frame % capture.n_frames,
+                          correspondence_file=str(pathlib.Path(args.correspondence).resolve()))
+            with _naming(args.subject):
+                adaptation = subject.adapt_to_markers(template, neutral, capture.marker_names, correspondence,
+                                                      name=out.name)
+        else:
+            scan = subject.read_surface(args.surface, units=args.units or "mm")
+            landmarks = subject.read_landmark_file(args.landmarks, scan, units=args.units or "mm")
+            inputs = dict(subject_surface=str(pathlib.Path(args.surface).resolve()),
+                          landmarks_file=str(pathlib.Path(args.landmarks).resolve()))
+            with _naming(args.surface):
+                adaptation = subject.adapt_to_surface(template, scan, landmarks, name=out.name)
+        worst = max(adaptation.distances, key=adaptation.distances.get)
+        info = dict(template=str(template_path.resolve()), template_name=template.name, **inputs,
+                    residual_rms_mm=adaptation.rms, residual_max_mm=adaptation.max,
+                    matching_rounds=adaptation.iterations)
+        subject.write_adapted_model(adaptation, out, info=info, overwrite=args.overwrite)
+        what = "markers" if args.subject else "skin nodes inside the scan"
+        return (f"adapted {template.name} to {getattr(args, source)}: the skin is RMS {adaptation.rms:.3f} mm, "
+                f"max {adaptation.max:.3f} mm ({worst}) from the subject's {len(adaptation.distances)} {what}; "
+                f"{adaptation.iterations} matching rounds"
+                f"{'' if adaptation.record['settled'] else ' (matches still sliding along the skin)'}")
+    log.info("%s", _root_first(adapt))
+    if MPI.COMM_WORLD.rank == 0:
+        print(out.resolve())
+
+
+@contextlib.contextmanager
+def _naming(path):
+    """Subject errors prefixed with the file they concern."""
+    from .subject import SubjectError
+    try:
+        yield
+    except SubjectError as error:
+        raise SubjectError(f"{path}: {error}") from None
+
+
 def truth_path(capture_path: pathlib.Path) -> pathlib.Path:
     return capture_path.with_name(capture_path.stem + ".truth.npz")
 
@@ -164,22 +225,25 @@ def fit(model, args) -> None:
     from .fitting import FaceFitter, FitSettings, MarkerSet, chunk_ranges
     from .model import load_model
     from .problem import FaceProblem
-    from .results import FitFolder
+    from .results import FitFolder, atomic_write_text
     comm = MPI.COMM_WORLD
     capture_path = pathlib.Path(args.capture)
-    capture = read_capture(capture_path, units=args.units, up_axis=args.up_axis)
-    unknown = [n for n in capture.marker_names if n not in model.markers]
-    if unknown:
-        raise SystemExit(f"{capture_path}: markers {', '.join(unknown[:5])}{' ...' if len(unknown) > 5 else ''} "
-                         f"are not marker sites of model {model.name}; this capture needs aligning to "
-                         f"the model first")
+    # Every input is checked before the result folder exists: a bad input leaves nothing behind.
+    capture = read_capture(capture_path, units=args.units, up_axis=args.up_axis,
+                           check_scale=not args.no_scale_check)
+    placement = _place_capture(model, capture, args)
+    capture = placement.aligned(capture)
     truth_file = pathlib.Path(args.truth) if args.truth else truth_path(capture_path)
     truth = load_truth(truth_file) if truth_file.exists() else None
     settings = FitSettings(mode=args.mode, max_gn_steps=args.gn_steps,
                            temporal_smoothness=args.smoothness)
     run = dict(capture=str(capture_path.resolve()), model=str(model.path), mode=args.mode,
                gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames)
+    run.update(alignment=placement.method, neutral_frame=placement.neutral_frame,
+               correspondence=str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None)
+    alignment_record = json.dumps(placement.to_json(), indent=2)
     folder = _root_first(lambda: FitFolder(args.out, run, overwrite=args.overwrite))
+    _root_first(lambda: atomic_write_text(folder.path / "alignment.json", alignment_record))
     done = _root_first(folder.finished_frames)
     chunks = chunk_ranges(capture.n_frames, args.chunks)
     if args.chunk is not None:  # one chunk in this (separate) process
@@ -192,8 +256,7 @@ def fit(model, args) -> None:
     group_comm = comm.Split(group, comm.rank) if groups > 1 else comm
     group_model = load_model(model.path, group_comm) if groups > 1 else model
     problem = FaceProblem(group_model)
-    sites = np.array([model.markers[n] for n in capture.marker_names])
-    markers = MarkerSet(problem, sites, names=capture.marker_names)
+    markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
     for chunk in chunks[group::groups]:
         todo = [f for f in chunk if f not in done]
         if not todo:
@@ -223,6 +286,33 @@ def fit(model, args) -> None:
     log.info("results: %s", pathlib.Path(args.out).resolve())
 
 
+def _place_capture(model, capture, args):
+    """The capture's alignment to the model and its markers on the skin (``placement``), logged.
+
+    Computed on rank 0 and sent to the others, so that every rank fits the same markers.
+    """
+    from .align import read_correspondence_file
+    from .placement import place_capture
+    from .surface import SkinSurface
+    skin_points, skin_triangles = model.skin_surface()  # collective
+
+    def place():
+        correspondence = read_correspondence_file(args.correspondence) if args.correspondence else None
+        return place_capture(capture, args.neutral_frame, SkinSurface(skin_points, skin_triangles),
+                             model.markers, model.landmarks, correspondence)
+    placement = _root_first(place)
+    log.info("%s", placement.summary())
+    if placement.doubtful:
+        reasons = (placement.details["warning"] if placement.quality is None
+                   else placement.quality.verdict.removeprefix("doubtful: "))
+        advice = ("check the correspondences" if placement.method == "correspondence" else
+                  "give --correspondence (capture marker -> model landmark) for a reliable alignment")
+        log.warning("the alignment of %s to model %s is doubtful: %s. The fit goes on, but its results are "
+                    "only as good as the alignment: %s, or adapt the model to the subject (build --subject)",
+                    capture.source, model.name, reasons, advice)
+    return placement
+
+
 def _warm_start(fitter, last) -> None:
     """Continue a fit from a finished frame: its controls and the equilibrium there."""
     fitter.state.activations = last.activations.copy()
@@ -245,13 +335,42 @@ def _render_expression(problem, path: pathlib.Path, title: str) -> None:
 
 
 def main(argv=None) -> int:
+    """Run a command line; errors in what the user gave (files, options) end it with one message."""
+    from .align import AlignmentError
+    from .capture import CaptureError
+    from .config import ConfigError
+    from .model import ModelError
+    from .subject import SubjectError
+    try:
+        return _main(argv)
+    except (AlignmentError, CaptureError, ConfigError, ModelError, SubjectError) as error:
+        raise SystemExit(f"face-dolfinx: error: {error}") from None
+
+
+def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
+    """The options of a command line, with those of its --config file under them; and the PETSc
+    options (-face_*). Wrong or missing options end it with a usage message (SystemExit 2)."""
     parser = argparse.ArgumentParser(prog="face-dolfinx", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    build = sub.add_parser("build", help="generate the built-in face model")
+    build = sub.add_parser("build", help="generate the built-in face model, or adapt a model to a subject")
     build.add_argument("--tets", type=int, default=50_000, help="target number of tetrahedra")
+    build.add_argument("--model", help="template model folder to adapt (default: the built-in face)")
+    build.add_argument("--subject", help="capture (TRC, CSV, C3D) whose neutral frame shapes the subject; "
+                                         "needs --correspondence")
+    build.add_argument("--surface", help="the subject's face surface (OBJ, STL, PLY, ...); needs --landmarks")
+    build.add_argument("--correspondence", help="TOML or CSV: capture marker -> model landmark (>= 6)")
+    build.add_argument("--landmarks", help="TOML or CSV: model landmark -> surface vertex id or [x, y, z]")
+    build.add_argument("--neutral-frame", type=int, default=0, help="frame of the subject capture at rest")
+    build.add_argument("--units", help="mm, cm or m: the capture's when it does not say, the surface's (default mm)")
+    build.add_argument("--up-axis", choices=("Y", "Z"), help="vertical axis of the capture file")
+    build.add_argument("--no-scale-check", action="store_true",
+                       help="accept a capture whose markers do not span a face's 40-600 mm (needs the units "
+                            "stated, by the file or --units)")
+    build.add_argument("--out", help="folder of the adapted model (with --subject or --surface)")
+    build.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
 
     for name, helptext in (("simulate", "shapes for named expressions"),
                            ("demo", "the main job: default face, a few expressions")):
@@ -263,7 +382,7 @@ def main(argv=None) -> int:
         p.add_argument("--overwrite", action="store_true", help="replace an existing result folder")
         p.add_argument("--no-render", action="store_true", help="skip the PNG renders")
         if name == "simulate":
-            p.add_argument("expressions", nargs="+", help="expression names defined in the model")
+            p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     def model_options(p, out):
         p.add_argument("--model", help="model folder (default: the built-in face)")
@@ -284,9 +403,17 @@ def main(argv=None) -> int:
 
     p = sub.add_parser("fit", help="fit activations and bone motion to a take")
     model_options(p, "results/fit")
-    p.add_argument("capture", help="TRC, CSV or C3D file whose markers are model marker sites")
+    p.add_argument("capture", nargs="?", help="TRC, CSV or C3D file of the take")
+    p.add_argument("--correspondence",
+                   help="TOML or CSV: capture marker -> model landmark (>= 6), to align a capture whose "
+                        "markers are not the model's marker sites (without it: ICP against the skin)")
+    p.add_argument("--neutral-frame", type=int, default=0,
+                   help="frame of the take at rest: aligned to the model, its markers embedded in the skin")
     p.add_argument("--units", help="mm, cm or m when the file does not say")
     p.add_argument("--up-axis", choices=("Y", "Z"), help="vertical axis of the file")
+    p.add_argument("--no-scale-check", action="store_true",
+                   help="accept markers that do not span a face's 40-600 mm (needs the units stated, by the "
+                        "file or --units)")
     p.add_argument("--mode", choices=("exact", "paper"), default="exact")
     p.add_argument("--gn-steps", type=int, default=3, help="Gauss-Newton steps per frame")
     p.add_argument("--smoothness", type=float, default=0.0,
@@ -297,18 +424,45 @@ def main(argv=None) -> int:
                         "mpirun the ranks share them out")
     p.add_argument("--chunk", type=int, help="fit only this chunk (for separate processes)")
 
+    for command_parser in sub.choices.values():
+        command_parser.add_argument("--config", help="TOML file of options (docs/cli.md); flags given here win")
     args, petsc_args = parser.parse_known_args(argv)
+    if args.config:
+        from .config import option_defaults
+        shared, own = option_defaults(args.config, args.command, parser, sub.choices)
+        parser.set_defaults(**shared)
+        sub.choices[args.command].set_defaults(**own)
+        args, petsc_args = parser.parse_known_args(argv)
+    for command, positional in (("fit", "capture"), ("simulate", "expressions")):
+        if args.command == command and not getattr(args, positional):
+            sub.choices[command].error(f"the {positional} argument is required (on the command line or "
+                                       f"as {positional!r} in the --config file)")
+    if args.command == "build" and (args.subject or args.surface):
+        if args.subject and args.surface:
+            build.error("give --subject (a capture) or --surface (a scan), not both")
+        source, needed = ("subject", "correspondence") if args.subject else ("surface", "landmarks")
+        for option in (needed, "out"):
+            if not getattr(args, option):
+                build.error(f"--{source} needs --{option}")
     # Unparsed -face_* arguments are PETSc options (e.g. -face_pc_type hypre).
+    unknown = [a for a in petsc_args if not a.startswith("-face_") and not _is_value(a, petsc_args)]
+    if unknown:
+        parser.error(f"unrecognised arguments: {' '.join(unknown)}")
+    return args, petsc_args
+
+
+def _main(argv=None) -> int:
+    args, petsc_args = parse_arguments(argv)
     if petsc_args:
         from petsc4py import PETSc
-        unknown = [a for a in petsc_args if not a.startswith("-face_") and not _is_value(a, petsc_args)]
-        if unknown:
-            parser.error(f"unrecognised arguments: {' '.join(unknown)}")
         PETSc.Options().insertString(" ".join(petsc_args))
     _setup_logging(verbose=args.verbose)
 
     if args.command == "build":
         from .anatomy import build_builtin_face
+        if args.subject or args.surface:
+            build_subject(args)
+            return 0
         path = build_builtin_face(target_tets=args.tets)
         if MPI.COMM_WORLD.rank == 0:
             print(path)

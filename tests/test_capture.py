@@ -1,6 +1,7 @@
 """Reading and writing motion-capture takes (face_dolfinx.capture): formats, units, axes, gaps, errors."""
 
 import importlib.util
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -367,6 +368,13 @@ def test_mislabelled_file_units_are_caught_and_can_be_overridden(tmp_path):
     with pytest.raises(CaptureError, match=r"the file says 'm'.*looks like millimetres; pass units='mm'"):
         read_capture(path)
     assert read_capture(path, units="mm").positions[0, 0, 2] == 100.0
+
+
+def test_capture_errors_survive_pickling():
+    """Errors raised on one MPI rank are pickled to the others."""
+    import pickle
+    error = pickle.loads(pickle.dumps(CaptureError("take.trc", "file not found")))
+    assert (str(error), error.source, error.problem) == ("take.trc: file not found", Path("take.trc"), "file not found")
 
 
 def test_check_scale_false_needs_stated_units(tmp_path):

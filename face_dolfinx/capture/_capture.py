@@ -18,6 +18,11 @@ class CaptureError(ValueError):
         self.problem = problem
         super().__init__(f"{_IN_MEMORY if source is None else source}: {problem}")
 
+    def __reduce__(self):
+        # Rebuilt from both parts (the default would pass the message alone), so that the error can
+        # be pickled, e.g. sent from rank 0 to the other MPI ranks.
+        return type(self), (self.source, self.problem)
+
 
 @dataclass(frozen=True, eq=False, repr=False)
 class Capture:

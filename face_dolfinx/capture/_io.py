@@ -178,9 +178,12 @@ def _check_scale(capture: Capture, units_used: str, units_given: str | None, uni
         stated = f"the file says {units_in_file!r}"
     else:
         stated = "the file doesn't say its units, so mm was assumed"
-    advice = (f"looks like {_UNIT_WORDS[likely[0]]}; pass units={likely[0]!r}" if likely else
+    advice = (f"likely a unit mistake: looks like {_UNIT_WORDS[likely[0]]}; pass units={likely[0]!r} "
+              f"(--units {likely[0]} on the command line)" if likely else
               "not a face's span in mm, cm or m either: check the file")
-    override = "check_scale=False" + ("" if units_given or units_in_file else " with units=")
+    stated_units = units_given or units_in_file
+    override = ("check_scale=False" + ("" if stated_units else " with units=") + "; on the command line "
+                "--no-scale-check" + ("" if stated_units else " with --units"))
     raise CaptureError(
         capture.source,
         f"markers span {span_in_file:.3g} {units_used} ({stated}; median bounding-box diagonal over frames), "

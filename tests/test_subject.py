@@ -1,0 +1,218 @@
+"""Subject adaptation (face_dolfinx.subject, `build --subject` and `build --surface`): the built-in
+5K face warped onto synthetic subjects whose true shape is known."""
+import json
+import pathlib
+
+import meshio
+from mpi4py import MPI
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from face_dolfinx.align import Similarity
+from face_dolfinx.capture import Capture, write_capture
+from face_dolfinx.cli import main
+from face_dolfinx.model import load_model
+from face_dolfinx.subject import read_model_arrays
+from face_dolfinx.surface import SkinSurface
+from face_dolfinx.warp import inverted_tets
+from user_capture import user_sites, write_correspondence
+
+# The subject: the template stretched, sheared and moved (an affine map, which the warp's affine
+# part reproduces exactly), in a lab frame of its own.
+STRETCH = np.array([[1.08, 0.06, 0.0], [0.0, 0.94, 0.07], [0.04, 0.0, 1.03]])
+LAB = Similarity(1.0, Rotation.from_euler("xyz", [-15.0, 30.0, 5.0], degrees=True).as_matrix(), [-300.0, 50.0, 700.0])
+# A 3 mm puff of the left cheek (sigma 15 mm) on top, for the scan: a shape no affine map gives.
+PUFF_MM, PUFF_CENTRE, PUFF_SIGMA = 3.0, np.array([35.0, -10.0, 95.0]), 15.0
+
+
+def affine_subject(points):
+    return LAB.apply(points @ STRETCH.T)
+
+
+def puffed_subject(points):
+    puff = PUFF_MM * np.exp(-np.sum((points - PUFF_CENTRE) ** 2, axis=-1) / (2 * PUFF_SIGMA ** 2))
+    return affine_subject(points + puff[..., None] * np.array([0.5, 0.0, 1.0]) / np.sqrt(1.25))
+
+
+@pytest.fixture(scope="module")
+def shared_dir(tmp_path_factory):
+    return pathlib.Path(MPI.COMM_WORLD.bcast(str(tmp_path_factory.mktemp("subject")), root=0))
+
+
+@pytest.fixture(scope="module")
+def template(builtin_model_path):
+    return read_model_arrays(builtin_model_path)
+
+
+def on_rank_0(action):
+    if MPI.COMM_WORLD.rank == 0:
+        action()
+    MPI.COMM_WORLD.barrier()
+
+
+def to_template(folder) -> Similarity:
+    """The rigid map from the subject's frame to the adapted model's, as subject.json records it."""
+    record = json.loads((folder / "subject.json").read_text())["to_template"]
+    return Similarity(record["scale"], record["rotation"], record["translation"])
+
+
+def fibers_of(folder, model):
+    archive = np.load(folder / "muscles.npz")
+    return {name: (archive[f"{name}/cells"], archive[f"{name}/fiber"]) for name in model.muscle_names}
+
+
+def check_is_a_valid_model(folder, template):
+    """Loads; same cells and tags; unit fibers; no tet inverted."""
+    model = load_model(folder)
+    assert model.muscle_names == [m.name for m in template.muscles]
+    with __import__("h5py").File(folder / "mesh.h5", "r") as h5:
+        points, cells = h5["Mesh/flesh/geometry"][...], h5["Mesh/flesh/topology"][...]
+    np.testing.assert_array_equal(cells, template.cells)
+    assert inverted_tets(points, cells).size == 0
+    for cells_, fiber in fibers_of(folder, model).values():
+        np.testing.assert_allclose(np.linalg.norm(fiber, axis=1), 1.0, atol=1e-12)
+    return model, points
+
+
+def test_subject_from_a_capture(template, builtin_model_path, shared_dir):
+    """The subject's markers are the template's sites and landmarks under an affine map. The warp
+    reproduces an affine map exactly, so everything (nodes, skin through the markers, fibers, jaw)
+    must match the map to what the TRC file keeps of it: 10 significant digits, 1e-5 mm here."""
+    names, sites, correspondence = user_sites(template)
+    take = shared_dir / "subject.trc"
+    on_rank_0(lambda: write_capture(Capture(names, np.stack([affine_subject(sites)] * 2), 60.0), take))
+    pairs = write_correspondence(shared_dir / "subject.toml", correspondence)
+    out = shared_dir / "subject_model"
+    assert main(["build", "--subject", str(take), "--correspondence", str(pairs), "--model",
+                 str(builtin_model_path), "--out", str(out)]) == 0
+
+    model, points = check_is_a_valid_model(out, template)
+    frame = to_template(out)
+    assert frame.scale == 1.0  # rigid: the subject keeps its size
+    truth = frame @ LAB  # template points -> STRETCH -> new model's frame
+
+    def expected(x):
+        return truth.apply(x @ STRETCH.T)
+    np.testing.assert_allclose(points, expected(template.points), rtol=0, atol=1e-4)
+    skin = SkinSurface(*model.skin_surface())
+    markers = frame.apply(affine_subject(sites))
+    assert skin.closest(markers)[3].max() < 1e-4
+    for name, (cells, fiber) in fibers_of(out, model).items():
+        index = [m.name for m in template.muscles].index(name)
+        stretched = template.muscles[index].fiber @ (truth.rotation @ STRETCH).T
+        np.testing.assert_allclose(fiber, stretched / np.linalg.norm(stretched, axis=1)[:, None], atol=1e-6)
+    np.testing.assert_allclose(model.jaw.condyle_left, expected(template.jaw.condyle_left), atol=1e-4)
+    np.testing.assert_allclose(model.landmarks["nose_tip"], expected(template.landmarks["nose_tip"]), atol=1e-4)
+    assert list(model.markers) == list(template.markers)  # the template's sites, carried along
+    info = __import__("tomllib").loads((out / "model.toml").read_text())["generator"]
+    assert info["residual_max_mm"] < 1e-4 and info["subject_capture"] == str(take.resolve())
+
+
+def test_a_warp_that_inverts_tets_is_refused(template, builtin_model_path, shared_dir):
+    """One marker 20 mm inside the face pulls the skin through the flesh: refused, nothing written."""
+    names, sites, correspondence = user_sites(template)
+    skin = template.skin()
+    triangle = skin.closest(sites)[0]
+    pushed = sites.copy()
+    pushed[5] -= 20.0 * skin.triangle_normals[triangle[5]]
+    take = shared_dir / "pushed.trc"
+    on_rank_0(lambda: write_capture(Capture(names, pushed[None], 60.0), take))
+    pairs = write_correspondence(shared_dir / "pushed.toml", correspondence)
+    out = shared_dir / "pushed_model"
+    with pytest.raises(SystemExit, match=r"pushed\.trc: the warp inverts \d+ of \d+ tetrahedra"):
+        main(["build", "--subject", str(take), "--correspondence", str(pairs), "--model",
+              str(builtin_model_path), "--out", str(out)])
+    MPI.COMM_WORLD.barrier()
+    assert not [p for p in shared_dir.iterdir() if "pushed_model" in p.name]
+
+
+def write_scan(template, path, subject, units_per_mm=1.0):
+    """The template's skin triangles under ``subject`` as a surface file, the landmarks' subject
+    positions appended as extra (unconnected) vertices; and a landmark file naming half of them by
+    vertex id and half by coordinates."""
+    skin = template.skin()
+    nodes = template.skin_nodes
+    index = np.full(len(template.points), -1)
+    index[nodes] = np.arange(len(nodes))
+    landmarks = subject(np.array(list(template.landmarks.values()))) * units_per_mm
+    points = np.vstack([subject(template.points[nodes]) * units_per_mm, landmarks])
+    lines = ["[landmarks]"]
+    for k, name in enumerate(template.landmarks):
+        lines.append(f"{name} = {len(nodes) + k}" if k % 2 else f"{name} = {landmarks[k].tolist()}")
+
+    def write():
+        meshio.write(path, meshio.Mesh(points, [("triangle", index[skin.triangles].astype(np.int32))]))
+        path.with_suffix(".toml").write_text("\n".join(lines) + "\n")
+    on_rank_0(write)
+    return path, path.with_suffix(".toml")
+
+
+def test_subject_from_a_surface_scan(template, builtin_model_path, shared_dir):
+    """An OBJ of the puffed subject's face. The skin nodes matched to the scan are control points
+    the warp puts on it exactly; the few left out (next to a landmark, closer than half an edge)
+    are interpolated across about 4 mm, missing the puff's curvature (3 mm / (15 mm)^2) by at most
+    0.013 x 4^2 / 2 = 0.1 mm. Nodes beyond the scan's border are not matched and not checked."""
+    scan, landmarks = write_scan(template, shared_dir / "face.obj", puffed_subject)
+    out = shared_dir / "scan_model"
+    assert main(["build", "--surface", str(scan), "--landmarks", str(landmarks), "--model",
+                 str(builtin_model_path), "--out", str(out)]) == 0
+    model, points = check_is_a_valid_model(out, template)
+    frame = to_template(out)
+    surface = meshio.read(scan)
+    scan_surface = SkinSurface(frame.apply(surface.points), surface.cells_dict["triangle"])
+    skin_points, _ = model.skin_surface()
+    triangle, barycentric, _, distance = scan_surface.closest(skin_points)
+    inside = np.all(barycentric > 1e-9, axis=1)  # closest point inside a scan triangle, not on an edge
+    assert inside.mean() > 0.8
+    assert distance[inside].max() < 0.1
+    assert np.sqrt(np.mean(distance[inside] ** 2)) < 0.01
+    for name, point in template.landmarks.items():
+        assert np.linalg.norm(model.landmarks[name] - frame.apply(puffed_subject(point))) < 0.1
+    record = json.loads((out / "subject.json").read_text())
+    assert record["residual_max_mm"] < 0.1 and record["settled"]
+
+
+def test_a_scan_in_centimetres(template, builtin_model_path, shared_dir):
+    scan, landmarks = write_scan(template, shared_dir / "face_cm.ply", affine_subject, units_per_mm=0.1)
+    out = shared_dir / "cm_model"
+    arguments = ["build", "--surface", str(scan), "--landmarks", str(landmarks), "--model",
+                 str(builtin_model_path), "--out", str(out)]
+    with pytest.raises(SystemExit, match=r"face_cm\.ply: the surface's landmarks span 0\.10\d times the "
+                                         r"template's: .* likely a unit mistake; looks like cm: pass --units cm"):
+        main(arguments)
+    MPI.COMM_WORLD.barrier()
+    assert not out.exists()
+    assert main(arguments + ["--units", "cm"]) == 0
+    _, points = check_is_a_valid_model(out, template)
+    np.testing.assert_allclose(points, (to_template(out) @ LAB).apply(template.points @ STRETCH.T), atol=1e-4)
+
+
+def test_surface_input_errors(template, builtin_model_path, shared_dir):
+    scan, landmarks = write_scan(template, shared_dir / "errors.obj", affine_subject)
+    model = ["--model", str(builtin_model_path), "--out", str(shared_dir / "never")]
+    text = shared_dir / "face.txt"
+    on_rank_0(lambda: text.write_text("not a mesh\n"))
+    few = shared_dir / "few.toml"
+    on_rank_0(lambda: few.write_text("[landmarks]\nnose_tip = 0\nnasion = 1\nchin = 2\nmenton = 3\nglabella = 4\n"))
+    wrong = shared_dir / "wrong.csv"
+    on_rank_0(lambda: wrong.write_text("landmark,vertex\nnose_tip,0\nnose_top,1\nchin,2\nmenton,3\n"
+                                       "glabella,4\nnasion,5\nsubnasale,6\n"))
+    far = shared_dir / "far.toml"
+    on_rank_0(lambda: far.write_text("[landmarks]\nnose_tip = 100000\n"))
+    for argv, message in [
+        (["--surface", str(text), "--landmarks", str(landmarks)], r"face\.txt: unknown surface format '\.txt'"),
+        (["--surface", str(shared_dir / "absent.stl"), "--landmarks", str(landmarks)], r"absent\.stl: file not found"),
+        (["--surface", str(scan), "--landmarks", str(few)],
+         r"errors\.obj: only 5 usable landmarks; at least 6 are needed"),
+        (["--surface", str(scan), "--landmarks", str(wrong)],
+         r"errors\.obj: not landmarks of model builtin-face: nose_top"),
+        (["--surface", str(scan), "--landmarks", str(far)],
+         r"far\.toml: nose_tip = 100000: the vertex ids of errors\.obj run from 0 to \d+"),
+    ]:
+        with pytest.raises(SystemExit, match=message):
+            main(["build", *argv, *model])
+    assert not (shared_dir / "never").exists()
+    with pytest.raises(SystemExit) as usage:
+        main(["build", "--surface", str(scan), *model])
+    assert usage.value.code == 2  # --surface needs --landmarks: argparse's usage error
