@@ -55,7 +55,7 @@ def render_skin(points, triangles, path, scalars=None, markers=None, other_marke
     points (n, 3), triangles (m, 3): the surface (e.g. ``FaceModel.skin_surface()``).
     scalars: optional values per point (n,) or per triangle (m,), shown with ``cmap``.
     markers / other_markers: optional (k, 3) points (or {name: point} dicts) drawn red / green,
-    e.g. simulated and captured marker positions.
+    e.g. captured and simulated marker positions; rows with NaN (capture gaps) are skipped.
     view: "front", "three_quarter" or "side".
     """
     points = np.asarray(points, dtype=float)
@@ -88,13 +88,16 @@ def render_skin(points, triangles, path, scalars=None, markers=None, other_marke
     axes.add_collection(PolyCollection(corners[order, :, :2], facecolors=colours[order],
                                        edgecolors=colours[order], linewidths=0.15,
                                        antialiaseds=False))
-    for marker_set, colour in ((markers, "red"), (other_markers, "limegreen")):
+    # The green set is drawn smaller, on top: where the two nearly coincide (a good fit) the red
+    # one still shows as a ring around it.
+    for marker_set, colour, area in ((markers, "red", 16), (other_markers, "limegreen", 6)):
         if marker_set is None:
             continue
         xyz = np.asarray(list(marker_set.values()) if isinstance(marker_set, dict) else marker_set,
                          dtype=float).reshape(-1, 3) @ rotation.T
+        xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
         xyz = xyz[_visible(xyz, corners)]
-        axes.scatter(xyz[:, 0], xyz[:, 1], s=9, c=colour, edgecolors="black", linewidths=0.3,
+        axes.scatter(xyz[:, 0], xyz[:, 1], s=area, c=colour, edgecolors="black", linewidths=0.3,
                      zorder=3)
     drawn = corners[:, :, :2].reshape(-1, 2)       # frame what is drawn, not unused points
     low, high = drawn.min(axis=0), drawn.max(axis=0)
