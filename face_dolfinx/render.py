@@ -178,9 +178,10 @@ def _opening_walls(triangles: np.ndarray, flat_normals: np.ndarray) -> np.ndarra
     return np.isin(patch, walls)
 
 
-def _visible(points: np.ndarray, corners: np.ndarray, tolerance: float = 0.5) -> np.ndarray:
+def _visible(points: np.ndarray, corners: np.ndarray, tolerance: float = 2.0) -> np.ndarray:
     """Points (camera coordinates) not hidden behind a triangle (corners (m, 3, 3)) by more than
-    ``tolerance`` (so points on the surface itself stay visible)."""
+    ``tolerance`` mm, so that points on the surface stay visible, and so do captured markers,
+    which lie off the skin by their noise (0.5 mm and more); the far cheek is tens of mm behind."""
     a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
     low, high = corners[:, :, :2].min(axis=1), corners[:, :, :2].max(axis=1)
     e1, e2 = (b - a)[:, :2], (c - a)[:, :2]
