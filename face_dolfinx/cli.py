@@ -21,6 +21,7 @@ import numpy as np
 
 log = logging.getLogger("face_dolfinx")
 
+
 def _setup_logging(folder: pathlib.Path | None = None, verbose: bool = False) -> None:
     """Log to the console and (optionally) ``folder``/run.log, from rank 0 only."""
     root = logging.getLogger()

@@ -143,7 +143,8 @@ def _plot_activations(folder: FitFolder, results: dict, truth) -> Path:
     axes.set_ylim(-0.02, max(0.1, 1.1 * float(np.nanmax(peak[shown]))))
     axes.set_xlabel("time (s)")
     axes.set_ylabel("activation")
-    axes.set_title(f"The {len(shown)} most active muscles" + (" (fit solid, truth dashed)" if truth is not None else ""))
+    axes.set_title(f"The {len(shown)} most active muscles"
+                   + (" (fit solid, truth dashed)" if truth is not None else ""))
     axes.legend(fontsize=7, ncol=2, loc="upper right")
     return _save(figure, folder.path / "activations.png")
 

@@ -230,9 +230,7 @@ class FitFolder:
                 previous_activations=data["previous_activations"] if "previous_activations" in data else None,
                 frames_done=int(data["frames_done"]),
                 displacement=node_order.scatter(data["displacement"]),
-                problem_controls=Controls(data["problem_activations"],
-                                          AffineMap(data["problem_cranium_matrix"], data["problem_cranium_translation"]),
-                                          AffineMap(data["problem_jaw_matrix"], data["problem_jaw_translation"])),
+                problem_controls=_controls_from_arrays("problem", data),
                 jacobian_state=_state_from_arrays("jacobian_state", data) if has_jacobian else None,
                 jacobian_dofs=node_order.scatter(data["jacobian_dofs"]) if has_jacobian else None,
                 jacobian_markers=data["jacobian_markers"] if has_jacobian else None)
@@ -281,10 +279,17 @@ class FitFolder:
         (self.path / IN_PROGRESS).unlink(missing_ok=True)
 
 
+def _map_arrays(prefix: str, frame: AffineMap) -> dict:
+    return {f"{prefix}_matrix": frame.matrix, f"{prefix}_translation": frame.translation}
+
+
+def _map_from_arrays(prefix: str, data) -> AffineMap:
+    return AffineMap(data[f"{prefix}_matrix"], data[f"{prefix}_translation"])
+
+
 def _state_arrays(prefix: str, state: ControlState) -> dict:
     arrays = {f"{prefix}_mode": np.array(state.mode), f"{prefix}_activations": state.activations,
-              f"{prefix}_cranium_matrix": state.cranium.matrix, f"{prefix}_cranium_translation": state.cranium.translation,
-              f"{prefix}_jaw_matrix": state.jaw.matrix, f"{prefix}_jaw_translation": state.jaw.translation}
+              **_map_arrays(f"{prefix}_cranium", state.cranium), **_map_arrays(f"{prefix}_jaw", state.jaw)}
     if state.tmj is not None:
         arrays[f"{prefix}_tmj"] = state.tmj
     return arrays
@@ -292,15 +297,18 @@ def _state_arrays(prefix: str, state: ControlState) -> dict:
 
 def _state_from_arrays(prefix: str, data) -> ControlState:
     return ControlState(str(data[f"{prefix}_mode"]), data[f"{prefix}_activations"],
-                        AffineMap(data[f"{prefix}_cranium_matrix"], data[f"{prefix}_cranium_translation"]),
-                        AffineMap(data[f"{prefix}_jaw_matrix"], data[f"{prefix}_jaw_translation"]),
+                        _map_from_arrays(f"{prefix}_cranium", data), _map_from_arrays(f"{prefix}_jaw", data),
                         data[f"{prefix}_tmj"] if f"{prefix}_tmj" in data else None)
 
 
 def _controls_arrays(prefix: str, controls: Controls) -> dict:
     return {f"{prefix}_activations": controls.activations,
-            f"{prefix}_cranium_matrix": controls.cranium.matrix, f"{prefix}_cranium_translation": controls.cranium.translation,
-            f"{prefix}_jaw_matrix": controls.jaw.matrix, f"{prefix}_jaw_translation": controls.jaw.translation}
+            **_map_arrays(f"{prefix}_cranium", controls.cranium), **_map_arrays(f"{prefix}_jaw", controls.jaw)}
+
+
+def _controls_from_arrays(prefix: str, data) -> Controls:
+    return Controls(data[f"{prefix}_activations"], _map_from_arrays(f"{prefix}_cranium", data),
+                    _map_from_arrays(f"{prefix}_jaw", data))
 
 
 def _table(header, rows) -> str:
