@@ -14,6 +14,7 @@ NP ?= 2
 install:
 	bash scripts/install.sh
 
+# Build the face, synthesise a take, fit it; results/demo/fit/ (see README). Resumes if interrupted.
 demo: install
 	mpirun -n $(NP) $(PYTHON) run.py demo
 

@@ -5,9 +5,10 @@ Subcommands:
             (a capture) or --surface (a scan), the face adapted to a subject
   simulate  equilibrium shapes for named expressions -> XDMF + PNG
   synth     a synthetic take of known truth (markers with noise, outliers, gaps) -> TRC/CSV/C3D
-  fit       a take -> activations, head and jaw motion per frame (resumable); a capture of your
-            own is aligned to the model first (--correspondence, or ICP)
-  demo      the README's main job: build the default face, simulate a few expressions
+  fit       a take -> activations, head and jaw motion per frame (resumable), tables and report;
+            a capture of your own is aligned to the model first (--correspondence, or ICP)
+  report    (re)build the plots, rendered frames and ParaView series of a fit folder
+  demo      the README's main job: build the face, synthesise a take, fit it
 Every subcommand takes --config FILE.toml (docs/cli.md).
 """
 import argparse
@@ -24,12 +25,12 @@ import numpy as np
 
 log = logging.getLogger("face_dolfinx")
 
-DEMO_EXPRESSIONS = ["smile", "jaw_open", "brow_raise", "frown", "pucker"]
-
 
 def _setup_logging(folder: pathlib.Path | None = None, verbose: bool = False) -> None:
-    """Log to the console and (optionally) a file in ``folder``, from rank 0 only."""
+    """Log to the console and (optionally) ``folder``/run.log, from rank 0 only."""
     root = logging.getLogger()
+    for handler in root.handlers:
+        handler.close()
     root.handlers.clear()
     if MPI.COMM_WORLD.rank != 0:
         root.addHandler(logging.NullHandler())
@@ -38,15 +39,28 @@ def _setup_logging(folder: pathlib.Path | None = None, verbose: bool = False) ->
     root.setLevel(logging.WARNING)
     log.setLevel(level)
     fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S")
-    console = logging.StreamHandler(sys.stdout)
-    console.setFormatter(fmt)
-    # The form compiler logs its C builds at INFO on the root logger: keep only ours and warnings.
-    console.addFilter(lambda record: record.name.startswith("face_dolfinx") or record.levelno >= logging.WARNING)
-    root.addHandler(console)
+    handlers = [_ConsoleHandler()]
     if folder is not None:
-        handler = logging.FileHandler(folder / "run.log")
+        handlers.append(logging.FileHandler(folder / "run.log"))  # appends: a resume adds its log
+    for handler in handlers:
         handler.setFormatter(fmt)
+        # The form compiler logs its C builds at INFO on the root logger: keep only ours and warnings.
+        handler.addFilter(lambda record: record.name.startswith("face_dolfinx") or record.levelno >= logging.WARNING)
         root.addHandler(handler)
+
+
+class _ConsoleHandler(logging.StreamHandler):
+    """Log lines on stdout that go above a progress bar instead of through it."""
+
+    def __init__(self):
+        super().__init__(sys.stdout)
+
+    def emit(self, record):
+        from tqdm import tqdm
+        try:
+            tqdm.write(self.format(record), file=self.stream)
+        except Exception:  # as logging.StreamHandler does: a failed log line must not stop the run
+            self.handleError(record)
 
 
 def _model_from_args(args):
@@ -126,7 +140,7 @@ def synth(model, args) -> None:
     from .capture import write_capture
     from .fitting import MarkerSet
     from .problem import FaceProblem
-    from .synthetic import synthesize_take
+    from .synthetic import save_truth, synthesize_take, truth_path
     out = pathlib.Path(args.out)
     if out.exists() and not args.overwrite:
         raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
@@ -141,10 +155,7 @@ def synth(model, args) -> None:
     def write():
         out.parent.mkdir(parents=True, exist_ok=True)
         write_capture(capture, out)
-        np.savez(truth_path(out), activations=truth.activations, tmj=truth.tmj,
-                 head_matrices=np.array([h.matrix for h in truth.head]),
-                 head_translations=np.array([h.translation for h in truth.head]),
-                 clean_positions=truth.clean_positions, muscle_names=np.array(model.muscle_names))
+        save_truth(truth_path(out), truth, model.muscle_names)
     _root_first(write)
     log.info("wrote %s (%d frames, %d markers) and its truth %s", out, args.frames, len(names), truth_path(out))
 
@@ -206,26 +217,17 @@ def _naming(path):
         raise SubjectError(f"{path}: {error}") from None
 
 
-def truth_path(capture_path: pathlib.Path) -> pathlib.Path:
-    return capture_path.with_name(capture_path.stem + ".truth.npz")
-
-
-def load_truth(path: pathlib.Path):
-    from .bones import AffineMap
-    from .synthetic import TakeTruth
-    data = np.load(path)
-    head = [AffineMap(M, t) for M, t in zip(data["head_matrices"], data["head_translations"])]
-    return TakeTruth(data["activations"], data["tmj"], head, data["clean_positions"])
-
-
 def fit(model, args) -> None:
     """Fit every frame of a take, writing each as soon as it is done; resumes a killed run."""
+    from tqdm import tqdm
     from .bones import AffineMap
     from .capture import read_capture
     from .fitting import FaceFitter, FitSettings, MarkerSet, chunk_ranges
     from .model import load_model
+    from .output import FileNodeOrder
     from .problem import FaceProblem
-    from .results import FitFolder, atomic_write_text
+    from .results import FitFolder, FitFolderError, atomic_write_text
+    from .synthetic import load_truth, truth_path
     comm = MPI.COMM_WORLD
     capture_path = pathlib.Path(args.capture)
     # Every input is checked before the result folder exists: a bad input leaves nothing behind.
@@ -238,13 +240,25 @@ def fit(model, args) -> None:
     settings = FitSettings(mode=args.mode, max_gn_steps=args.gn_steps,
                            temporal_smoothness=args.smoothness)
     run = dict(capture=str(capture_path.resolve()), model=str(model.path), mode=args.mode,
-               gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames)
+               gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames,
+               chunks=args.chunks)
     run.update(alignment=placement.method, neutral_frame=placement.neutral_frame,
                correspondence=str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None)
     alignment_record = json.dumps(placement.to_json(), indent=2)
-    folder = _root_first(lambda: FitFolder(args.out, run, overwrite=args.overwrite))
+    take = dict(muscle_names=model.muscle_names, marker_names=list(capture.marker_names),
+                times=[float(t) for t in capture.times])
+    try:
+        folder, already_finished = _root_first(lambda: FitFolder.prepare(
+            args.out, run, take, truth_file if truth is not None else None, overwrite=args.overwrite))
+    except FitFolderError as error:
+        raise SystemExit(str(error)) from None
+    if already_finished:
+        log.info("%s already holds this fit, finished: nothing to do (run.py report %s rebuilds its "
+                 "plots; --overwrite fits again)", folder.path, folder.path)
+        return
     _root_first(lambda: atomic_write_text(folder.path / "alignment.json", alignment_record))
-    done = _root_first(folder.finished_frames)
+    _setup_logging(folder.path, verbose=args.verbose)
+    done = set(range(capture.n_frames)) - set(_root_first(folder.missing_frames))
     chunks = chunk_ranges(capture.n_frames, args.chunks)
     if args.chunk is not None:  # one chunk in this (separate) process
         if not 0 <= args.chunk < len(chunks):
@@ -256,34 +270,60 @@ def fit(model, args) -> None:
     group_comm = comm.Split(group, comm.rank) if groups > 1 else comm
     group_model = load_model(model.path, group_comm) if groups > 1 else model
     problem = FaceProblem(group_model)
+    node_order = FileNodeOrder(problem.V)
     markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
-    for chunk in chunks[group::groups]:
-        todo = [f for f in chunk if f not in done]
-        if not todo:
-            continue
-        fitter = FaceFitter(problem, markers, settings)
-        problem.u.x.array[:] = 0.0
-        problem.solve(activations=np.zeros(problem.num_muscles), cranium=AffineMap(), jaw=AffineMap())
-        previous = max((f for f in done if chunk.start <= f < todo[0]), default=None)
-        if previous is not None:  # resume inside this chunk from its last finished frame
-            _warm_start(fitter, done[previous])
-            log.info("resuming %s at frame %d (%d frames already done)", args.out, todo[0], len(done))
-        for frame in todo:
-            result = fitter.fit_frame(capture.positions[frame], frame=frame)
-            if group_comm.rank == 0:
-                folder.write_frame(result)
-            error = "" if truth is None else \
-                f", activation error {np.abs(result.activations - truth.activations[frame]).max():.3f}"
-            log.info("frame %d/%d: marker RMS %.3f mm (max %.3f), %d GN steps, %.1f s%s%s", frame + 1,
-                     capture.n_frames, result.rms_error, result.max_error, result.gn_steps,
-                     result.seconds, error, f" [{result.flag}]" if result.flag else "")
+    # A chunk is fitted from its first unfinished frame on, so that every frame after it starts
+    # from exactly the state an uninterrupted run would have had.
+    starts = {chunk: min((f for f in chunk if f not in done), default=None) for chunk in chunks[group::groups]}
+    todo = sum(chunk.stop - start for chunk, start in starts.items() if start is not None)
+    if args.stop_after is not None:
+        todo = min(todo, args.stop_after)
+    fitted = 0
+    with tqdm(total=todo, unit="frame", desc="fit", dynamic_ncols=True,
+              disable=True if comm.rank != 0 else None) as progress:  # None: only on a terminal
+        for chunk, start in starts.items():
+            if start is None or fitted == todo:
+                continue
+            fitter = FaceFitter(problem, markers, settings)
+            problem.u.x.array[:] = 0.0
+            problem.solve(activations=np.zeros(problem.num_muscles), cranium=AffineMap(), jaw=AffineMap())
+            if start > chunk.start:
+                checkpoint = folder.load_checkpoint(start - 1, node_order)
+                if checkpoint is None:
+                    log.warning("%s has no checkpoint after frame %d: refitting from frame %d", folder.path,
+                                start - 1, chunk.start)
+                    start = chunk.start
+                else:
+                    fitter.restore(checkpoint)
+                    log.info("resuming %s at frame %d (%d frames already done)", folder.path, start, len(done))
+            for frame in range(start, chunk.stop):
+                if fitted == todo:  # --stop-after
+                    break
+                result = fitter.fit_frame(capture.positions[frame], frame=frame)
+                simulated = markers.positions(problem.u.x.array, fitter.state.cranium)
+                displacement = node_order.gather(problem.u.x.array)
+                # Checkpoint first, frame record last: a frame on disk always has its checkpoint.
+                folder.save_checkpoint(frame, fitter.checkpoint(), node_order)
+                if group_comm.rank == 0:
+                    folder.write_frame(result, capture.positions[frame], simulated, displacement)
+                    if frame > chunk.start:
+                        folder.drop_checkpoint(frame - 1)
+                fitted += 1
+                error = "" if truth is None else \
+                    f", activation error {np.abs(result.activations - truth.activations[frame]).max():.3f}"
+                log.info("frame %d/%d: marker RMS %.3f mm (max %.3f), %d GN steps, %.1f s%s%s", frame + 1,
+                         capture.n_frames, result.rms_error, result.max_error, result.gn_steps,
+                         result.seconds, error, f" [{result.flag}]" if result.flag else "")
+                progress.set_postfix_str(f"frame {frame}: {result.seconds:.1f} s, RMS {result.rms_error:.3f} mm",
+                                         refresh=False)
+                progress.update()
     comm.barrier()
-    missing = capture.n_frames - len(_root_first(folder.finished_frames))
+    missing = _root_first(folder.missing_frames)
     if missing:
-        log.info("%d frames still to fit (other chunks); rerun to finish %s", missing, args.out)
+        log.info("%d frames still to fit; rerun the same command to continue %s", len(missing), folder.path)
         return
-    _root_first(lambda: folder.finish(model.muscle_names, capture.marker_names, capture.times, truth))
-    log.info("results: %s", pathlib.Path(args.out).resolve())
+    _root_first(lambda: finish_fit(folder))
+    log.info("results: %s (plots: *.png and renders/; ParaView: face.xdmf)", folder.path.resolve())
 
 
 def _place_capture(model, capture, args):
@@ -313,16 +353,36 @@ def _place_capture(model, capture, args):
     return placement
 
 
-def _warm_start(fitter, last) -> None:
-    """Continue a fit from a finished frame: its controls and the equilibrium there."""
-    fitter.state.activations = last.activations.copy()
-    fitter.state.cranium = last.cranium
-    if last.jaw_tmj is not None:
-        fitter.state.tmj = last.jaw_tmj.copy()
-    else:
-        fitter.state.jaw = last.jaw
-    fitter.problem.solve(activations=last.activations, cranium=last.cranium, jaw=last.jaw)
-    fitter.previous_activations, fitter.frames_done = last.activations.copy(), 1
+def finish_fit(folder) -> None:
+    """Tables and report of a fit whose frames are all done, then mark it finished (rank 0)."""
+    from .report import write_report
+    folder.write_tables()
+    write_report(folder.path)
+    folder.mark_finished()
+
+
+def demo(args) -> int:
+    """The README's main job: build the built-in face, synthesise a speech-like take with head
+    motion and 0.5 mm marker noise (its truth kept beside it), fit it, and write the results
+    folder with its tables, plots, rendered frames and ParaView series. Rerun after an
+    interruption, it continues where it stopped; once finished, it says so."""
+    from .anatomy import build_builtin_face
+    out = pathlib.Path(args.out)
+    verbose = ["--verbose"] if args.verbose else []
+    model = ["--model", str(build_builtin_face(target_tets=args.tets))]
+    take = out / "take.trc"
+    if args.overwrite or not take.exists():
+        main([*verbose, "synth", *model, "--frames", str(args.frames), "--out", str(take), "--overwrite"])
+    fit_folder = out / "fit"
+    main([*verbose, "fit", str(take), *model, "--out", str(fit_folder), *(["--overwrite"] if args.overwrite else [])])
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"take: {take.resolve()} (truth: {take.with_name('take.truth.npz').name})\n"
+              f"results: {fit_folder.resolve()}\n"
+              f"  plots: activations.png, kinematics.png, marker_error.png; renders/ (captured markers "
+              f"red, simulated green)\n"
+              f"  tables: activations.csv, kinematics.csv, marker_errors.csv, frames.csv; "
+              f"ParaView: face.xdmf")
+    return 0
 
 
 def _render_expression(problem, path: pathlib.Path, title: str) -> None:
@@ -372,17 +432,29 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     build.add_argument("--out", help="folder of the adapted model (with --subject or --surface)")
     build.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
 
-    for name, helptext in (("simulate", "shapes for named expressions"),
-                           ("demo", "the main job: default face, a few expressions")):
-        p = sub.add_parser(name, help=helptext)
-        p.add_argument("--model", help="model folder (default: the built-in face)")
-        p.add_argument("--tets", type=int, default=50_000, help="built-in face resolution")
-        p.add_argument("--degree", type=int, default=1, choices=(1, 2), help="displacement degree")
-        p.add_argument("--out", default=f"results/{name}", help="result folder")
-        p.add_argument("--overwrite", action="store_true", help="replace an existing result folder")
-        p.add_argument("--no-render", action="store_true", help="skip the PNG renders")
-        if name == "simulate":
-            p.add_argument("expressions", nargs="*", help="expression names defined in the model")
+    p = sub.add_parser("simulate", help="shapes for named expressions")
+    p.add_argument("--model", help="model folder (default: the built-in face)")
+    p.add_argument("--tets", type=int, default=50_000, help="built-in face resolution")
+    p.add_argument("--degree", type=int, default=1, choices=(1, 2), help="displacement degree")
+    p.add_argument("--out", default="results/simulate", help="result folder")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing result folder")
+    p.add_argument("--no-render", action="store_true", help="skip the PNG renders")
+    p.add_argument("expressions", nargs="*", help="expression names defined in the model")
+
+    p = sub.add_parser("demo", help="the main job: build the face, synthesise a take, fit it",
+                       description=demo.__doc__)
+    p.add_argument("--tets", type=int, default=20_000, help="built-in face resolution")
+    p.add_argument("--frames", type=int, default=20, help="frames of the synthetic take")
+    p.add_argument("--out", default="results/demo", help="folder for the take and the fit")
+    p.add_argument("--overwrite", action="store_true", help="synthesise and fit again from scratch")
+
+    p = sub.add_parser("report", help="(re)build the plots, renders and XDMF of a fit folder",
+                       description="Rebuild activations.png, kinematics.png, marker_error.png, "
+                                   "renders/ and face.xdmf of a fit results folder from its frame "
+                                   "files; for an unfinished fit, of the frames done so far (the "
+                                   "missing ones are named). Runs on one process.")
+    p.add_argument("folder", help="results folder written by fit")
+    p.add_argument("--renders", type=int, default=4, help="number of frames to render")
 
     def model_options(p, out):
         p.add_argument("--model", help="model folder (default: the built-in face)")
@@ -423,6 +495,9 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="split the take into independent chunks (each starts from rest); under "
                         "mpirun the ranks share them out")
     p.add_argument("--chunk", type=int, help="fit only this chunk (for separate processes)")
+    p.add_argument("--stop-after", type=int, metavar="N",
+                   help="stop after fitting N frames, leaving the folder unfinished; the same "
+                        "command without it continues where this one stopped")
 
     for command_parser in sub.choices.values():
         command_parser.add_argument("--config", help="TOML file of options (docs/cli.md); flags given here win")
@@ -468,6 +543,13 @@ def _main(argv=None) -> int:
             print(path)
         return 0
 
+    if args.command == "report":
+        from .report import write_report
+        _root_first(lambda: write_report(args.folder, rendered_frames=args.renders))
+        return 0
+    if args.command == "demo":
+        return demo(args)
+
     model = _model_from_args(args)
     if args.command == "synth":
         synth(model, args)
@@ -475,10 +557,8 @@ def _main(argv=None) -> int:
     if args.command == "fit":
         fit(model, args)
         return 0
-    expressions = args.expressions if args.command == "simulate" else \
-        [e for e in DEMO_EXPRESSIONS if e in model.expressions]
     out = pathlib.Path(args.out)
-    rows = simulate(model, expressions, out, degree=args.degree, overwrite=args.overwrite,
+    rows = simulate(model, args.expressions, out, degree=args.degree, overwrite=args.overwrite,
                     render=not args.no_render)
     if MPI.COMM_WORLD.rank == 0:
         print(f"results: {out.resolve()} ({len(rows)} expressions; face.xdmf for ParaView, PNG renders)")

@@ -468,6 +468,38 @@ class FaceFitter:
                            None if state.tmj is None else state.tmj.copy(), errors, rms, worst, steps,
                            time.perf_counter() - start, phases, flag)
 
+    # -- checkpoint: what the next frame starts from ------------------------------------------
+    def checkpoint(self) -> "FitCheckpoint":
+        """Everything the next ``fit_frame`` depends on, copied: a fitter restored from it fits
+        the following frames bit for bit as this one would (same mesh distribution)."""
+        cached = self._cached_jacobian
+        return FitCheckpoint(
+            state=self.state.copy(),
+            previous_activations=None if self.previous_activations is None else self.previous_activations.copy(),
+            frames_done=self.frames_done,
+            displacement=self.problem.u.x.array.copy(),
+            problem_controls=self.problem.controls.copy(),
+            jacobian_state=None if cached is None else cached[0].copy(),
+            jacobian_dofs=None if cached is None else cached[1].copy(),
+            jacobian_markers=None if cached is None else cached[2].copy())
+
+    def restore(self, checkpoint: "FitCheckpoint") -> None:
+        """Continue from ``checkpoint``: controls, equilibrium and the Jacobian to reuse. The
+        equilibrium is put back as it was, not re-solved: one more Newton step would change it
+        at round-off level and the frames after it with it."""
+        if checkpoint.state.mode != self.settings.mode:
+            raise ValueError(f"checkpoint of a {checkpoint.state.mode!r} fit, this fitter is {self.settings.mode!r}")
+        self.state = checkpoint.state.copy()
+        self.previous_activations = (None if checkpoint.previous_activations is None
+                                     else checkpoint.previous_activations.copy())
+        self.frames_done = checkpoint.frames_done
+        self.problem.u.x.array[:] = checkpoint.displacement
+        # FaceProblem.solve would re-solve; only the controls and their Dirichlet values are wanted.
+        self.problem._set_controls(checkpoint.problem_controls.copy())
+        self._cached_jacobian = None if checkpoint.jacobian_state is None else (
+            checkpoint.jacobian_state.copy(), checkpoint.jacobian_dofs.copy(),
+            checkpoint.jacobian_markers.copy())
+
 
 def _exact_head_combination(cranium: AffineMap) -> np.ndarray:
     """(6, 12): exact-mode head controls (rotation about the origin on the group,
@@ -512,3 +544,19 @@ def track(fitter: FaceFitter, positions: np.ndarray, frames=None, on_frame=None)
         if on_frame is not None:
             on_frame(result)
     return results
+
+
+@dataclass
+class FitCheckpoint:
+    """The warm-start state of a sequence fit after a frame (``FaceFitter.checkpoint``).
+
+    Arrays over dofs are local (owned + ghost dofs of this rank's part of the mesh).
+    """
+    state: ControlState                      # the fitted controls
+    previous_activations: np.ndarray | None  # the temporal smoothness term's reference
+    frames_done: int                         # 0: the next frame gets the first-frame step budget
+    displacement: np.ndarray                 # the equilibrium the next frame starts from
+    problem_controls: object                 # FaceProblem.controls at that equilibrium
+    jacobian_state: ControlState | None      # the Jacobian the next first step reuses: the
+    jacobian_dofs: np.ndarray | None         # controls it was computed at, dX/dc (k, dofs)
+    jacobian_markers: np.ndarray | None      # and the marker Jacobian (k, markers, 3)

@@ -110,7 +110,7 @@ def place_capture(capture: Capture, neutral_frame: int, skin: SkinSurface, model
     missing = [name for name, present in zip(names, capture.present[frame]) if not present]
     complete = np.setdiff1d(np.arange(capture.n_frames), frames_with_gaps(capture))
     # Every marker is embedded in the skin from the neutral frame, so each must be present there.
-    choose = (f"choose a neutral frame where every marker is present (" +
+    choose = ("choose a neutral frame where every marker is present (" +
               (f"frames {', '.join(map(str, complete[:SUGGESTED_FRAMES]))}{' ...' if len(complete) > SUGGESTED_FRAMES else ''}"
                if complete.size else "no frame has them all: leave the markers out") + ")")
     if correspondence is not None:

@@ -55,7 +55,7 @@ def render_skin(points, triangles, path, scalars=None, markers=None, other_marke
     points (n, 3), triangles (m, 3): the surface (e.g. ``FaceModel.skin_surface()``).
     scalars: optional values per point (n,) or per triangle (m,), shown with ``cmap``.
     markers / other_markers: optional (k, 3) points (or {name: point} dicts) drawn red / green,
-    e.g. simulated and captured marker positions.
+    e.g. captured and simulated marker positions; rows with NaN (capture gaps) are skipped.
     view: "front", "three_quarter" or "side".
     """
     points = np.asarray(points, dtype=float)
@@ -88,13 +88,16 @@ def render_skin(points, triangles, path, scalars=None, markers=None, other_marke
     axes.add_collection(PolyCollection(corners[order, :, :2], facecolors=colours[order],
                                        edgecolors=colours[order], linewidths=0.15,
                                        antialiaseds=False))
-    for marker_set, colour in ((markers, "red"), (other_markers, "limegreen")):
+    # The green set is drawn smaller, on top: where the two nearly coincide (a good fit) the red
+    # one still shows as a ring around it.
+    for marker_set, colour, area in ((markers, "red", 16), (other_markers, "limegreen", 6)):
         if marker_set is None:
             continue
         xyz = np.asarray(list(marker_set.values()) if isinstance(marker_set, dict) else marker_set,
                          dtype=float).reshape(-1, 3) @ rotation.T
+        xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
         xyz = xyz[_visible(xyz, corners)]
-        axes.scatter(xyz[:, 0], xyz[:, 1], s=9, c=colour, edgecolors="black", linewidths=0.3,
+        axes.scatter(xyz[:, 0], xyz[:, 1], s=area, c=colour, edgecolors="black", linewidths=0.3,
                      zorder=3)
     drawn = corners[:, :, :2].reshape(-1, 2)       # frame what is drawn, not unused points
     low, high = drawn.min(axis=0), drawn.max(axis=0)
@@ -175,9 +178,10 @@ def _opening_walls(triangles: np.ndarray, flat_normals: np.ndarray) -> np.ndarra
     return np.isin(patch, walls)
 
 
-def _visible(points: np.ndarray, corners: np.ndarray, tolerance: float = 0.5) -> np.ndarray:
+def _visible(points: np.ndarray, corners: np.ndarray, tolerance: float = 2.0) -> np.ndarray:
     """Points (camera coordinates) not hidden behind a triangle (corners (m, 3, 3)) by more than
-    ``tolerance`` (so points on the surface itself stay visible)."""
+    ``tolerance`` mm, so that points on the surface stay visible, and so do captured markers,
+    which lie off the skin by their noise (0.5 mm and more); the far cheek is tens of mm behind."""
     a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
     low, high = corners[:, :, :2].min(axis=1), corners[:, :, :2].max(axis=1)
     e1, e2 = (b - a)[:, :2], (c - a)[:, :2]

@@ -1,32 +1,59 @@
-"""Fit results on disk, one frame at a time, so that a killed run loses nothing and resumes.
+"""Fit results on disk, one frame at a time, so that a killed run loses nothing and resumes
+exactly where it stopped.
 
 Layout of a fit folder:
-  run.json              the settings of the run (a rerun must match them to resume)
-  frames/000123.json    one finished frame, written atomically (temporary file + rename)
-  activations.csv       frame, time, one column per muscle            } written when the run
-  kinematics.csv        head rotation (row-major), translation, jaw   } completes, from the
-  marker_errors.csv     frame, one column per marker (mm, empty = gap) } frame files, atomically
-  frames.csv            per frame: RMS/max error, GN steps, seconds, phases, flag
-While a run is unfinished the folder holds ``IN_PROGRESS``; it is removed last.
+  run.json          the settings of the run (a rerun must match them to resume)
+  take.json         what the frames are: muscle and marker names, frame times
+  truth.npz         the truth of a synthetic take, copied from beside the capture (if known)
+  run.log           the log of every run that wrote here
+  frames/000123.displacement.npy   the frame's equilibrium displacement at the mesh file's nodes
+  frames/000123.json               the frame's controls, errors, captured and simulated markers;
+                                   written last and atomically: it existing means the frame is done
+  checkpoint/000123.npz            the fitter's warm-start state after frame 123 (resume)
+  activations.csv   frame, time, one column per muscle            } written when every frame is
+  kinematics.csv    head rotation (row-major), translation, jaw   } done, from the frame files;
+  marker_errors.csv frame, one column per marker (mm, empty = gap) } the same bytes however many
+  frames.csv        per frame: RMS/max error, GN steps, flag       } ranks, chunks or resumes
+  timings.csv       per frame: seconds, split by phase (these differ from run to run)
+  face.xdmf, *.png, renders/   the report (face_dolfinx.report)
+While a run is unfinished the folder holds ``IN_PROGRESS``; it is removed last, with the
+checkpoints (only a resume needs them).
+
+Checkpoints are stored in the mesh file's node order, so a run killed under ``mpirun -n 4`` can
+be resumed with any number of ranks; with the same number it continues bit for bit.
 """
 import csv
 import io
 import json
 import os
 import pathlib
+import shutil
 
 import numpy as np
 
 from .bones import AffineMap
-from .fitting import FrameResult
+from .fitting import ControlState, FitCheckpoint, FrameResult
+from .problem import Controls
+from .synthetic import load_truth
 
 IN_PROGRESS = "IN_PROGRESS"
+RUN_FILE, TAKE_FILE, TRUTH_FILE = "run.json", "take.json", "truth.npz"
+
+
+class FitFolderError(FileExistsError):
+    """The output folder holds something a fit must not replace or resume."""
 
 
 def atomic_write_text(path: pathlib.Path, text: str) -> None:
+    _atomic_write(path, lambda handle: handle.write(text.encode()))
+
+
+def _atomic_write(path: pathlib.Path, write) -> None:
+    """Write through a temporary file, flushed to disk, then renamed over ``path``: a kill
+    leaves the old file or the new one, never half of one."""
     temporary = path.with_name(f".{path.name}.tmp")
-    with open(temporary, "w") as handle:
-        handle.write(text)
+    with open(temporary, "wb") as handle:
+        write(handle)
         handle.flush()
         os.fsync(handle.fileno())
     os.replace(temporary, path)
@@ -38,7 +65,7 @@ def frame_to_dict(result: FrameResult) -> dict:
         cranium_matrix=result.cranium.matrix.tolist(), cranium_translation=result.cranium.translation.tolist(),
         jaw_matrix=result.jaw.matrix.tolist(), jaw_translation=result.jaw.translation.tolist(),
         jaw_tmj=None if result.jaw_tmj is None else result.jaw_tmj.tolist(),
-        marker_errors=[None if not np.isfinite(e) else float(e) for e in result.marker_errors],
+        marker_errors=_nullable(result.marker_errors),
         rms_error=result.rms_error, max_error=result.max_error, initial_rms=result.initial_rms,
         gn_steps=result.gn_steps, seconds=result.seconds, phases=result.phases, flag=result.flag)
 
@@ -49,34 +76,95 @@ def frame_from_dict(data: dict) -> FrameResult:
         cranium=AffineMap(data["cranium_matrix"], data["cranium_translation"]),
         jaw=AffineMap(data["jaw_matrix"], data["jaw_translation"]),
         jaw_tmj=None if data["jaw_tmj"] is None else np.array(data["jaw_tmj"]),
-        marker_errors=np.array([np.nan if e is None else e for e in data["marker_errors"]]),
+        marker_errors=_from_nullable(data["marker_errors"]),
         rms_error=data["rms_error"], max_error=data["max_error"], gn_steps=data["gn_steps"],
         seconds=data["seconds"], phases=data["phases"], flag=data["flag"],
         initial_rms=data["initial_rms"])
 
 
-class FitFolder:
-    """The result folder of one fit (rank 0 writes; every rank may read)."""
+def _nullable(values: np.ndarray) -> list:
+    """An array as nested lists with NaN as null (JSON has no NaN); floats keep every bit."""
+    values = np.asarray(values, dtype=float)
+    if values.ndim == 1:
+        return [float(v) if np.isfinite(v) else None for v in values]
+    return [_nullable(v) if np.all(np.isfinite(v)) else None for v in values]
 
-    def __init__(self, path, settings: dict, overwrite: bool = False):
+
+def _from_nullable(values: list, width: int | None = None) -> np.ndarray:
+    """The inverse of ``_nullable``: values (n,) or rows (n, width), null as NaN."""
+    if width is None:
+        return np.array([np.nan if v is None else v for v in values], dtype=float)
+    return np.array([[np.nan] * width if v is None else v for v in values], dtype=float).reshape(-1, width)
+
+
+def settings_differences(before: dict, now: dict) -> list[str]:
+    """'name: before -> now' for every setting that differs (JSON values compared)."""
+    before, now = json.loads(json.dumps(before)), json.loads(json.dumps(now))
+    return [f"{key}: {before.get(key, '(not set)')!r} there, {now.get(key, '(not set)')!r} now"
+            for key in sorted(set(before) | set(now)) if before.get(key) != now.get(key)]
+
+
+class FitFolder:
+    """The result folder of one fit. Rank 0 writes; every rank may read."""
+
+    def __init__(self, path):
         self.path = pathlib.Path(path)
         self.frames_dir = self.path / "frames"
-        self.settings = settings
-        run_file = self.path / "run.json"
-        if self.path.exists():
-            previous = json.loads(run_file.read_text()) if run_file.exists() else None
-            resumable = (self.path / IN_PROGRESS).exists() and previous == settings
-            if not resumable and not overwrite:
-                reason = ("it holds a finished run" if not (self.path / IN_PROGRESS).exists()
-                          else "it holds an unfinished run with other settings")
-                raise FileExistsError(f"{self.path} already exists and {reason}; pass --overwrite to "
-                                      f"replace it")
-            if not resumable:
-                for child in sorted(self.path.rglob("*"), reverse=True):
-                    child.unlink() if child.is_file() else child.rmdir()
-        self.frames_dir.mkdir(parents=True, exist_ok=True)
-        (self.path / IN_PROGRESS).touch()
-        atomic_write_text(run_file, json.dumps(settings, indent=2))
+        self.checkpoint_dir = self.path / "checkpoint"
+        if not (self.path / RUN_FILE).is_file():
+            raise FileNotFoundError(f"{self.path} is not a fit results folder (no {RUN_FILE})")
+        self.settings = json.loads((self.path / RUN_FILE).read_text())
+        take = json.loads((self.path / TAKE_FILE).read_text())
+        self.muscle_names, self.marker_names = take["muscle_names"], take["marker_names"]
+        self.times = np.array(take["times"], dtype=float)
+
+    @classmethod
+    def prepare(cls, path, settings: dict, take: dict, truth_file=None,
+                overwrite: bool = False) -> tuple["FitFolder", bool]:
+        """The folder for a fit with ``settings``; True if it already holds that fit, finished.
+
+        A new folder is created. A rerun with the same settings resumes an unfinished folder.
+        Anything else is refused, naming the settings that differ, unless ``overwrite``; a
+        non-empty folder that is no fit result is never replaced.
+        """
+        path = pathlib.Path(path)
+        if path.exists():
+            run_file = path / RUN_FILE
+            if not run_file.is_file():
+                if any(path.iterdir()):
+                    raise FitFolderError(f"{path} exists and is not a fit results folder (no {RUN_FILE}); "
+                                         f"choose another --out")
+            else:
+                finished = not (path / IN_PROGRESS).exists()
+                differences = settings_differences(json.loads(run_file.read_text()), settings)
+                state = "a finished fit" if finished else "an unfinished fit"
+                if overwrite:
+                    shutil.rmtree(path)
+                elif differences:
+                    raise FitFolderError(f"{path} holds {state} with other settings ({'; '.join(differences)}); "
+                                         f"pass --overwrite to replace it or choose another --out")
+                elif finished:
+                    return cls(path), True
+        (path / "frames").mkdir(parents=True, exist_ok=True)
+        (path / IN_PROGRESS).touch()
+        atomic_write_text(path / RUN_FILE, json.dumps(settings, indent=2))
+        atomic_write_text(path / TAKE_FILE, json.dumps(take))
+        if truth_file is not None:
+            _atomic_write(path / TRUTH_FILE, lambda handle: handle.write(pathlib.Path(truth_file).read_bytes()))
+        return cls(path), False
+
+    @property
+    def finished(self) -> bool:
+        return not (self.path / IN_PROGRESS).exists()
+
+    @property
+    def truth_file(self) -> pathlib.Path | None:
+        file = self.path / TRUTH_FILE
+        return file if file.is_file() else None
+
+    # -- frames -------------------------------------------------------------------------------
+    def _frame_file(self, frame: int, suffix: str) -> pathlib.Path:
+        return self.frames_dir / f"{frame:06d}{suffix}"
 
     def finished_frames(self) -> dict[int, FrameResult]:
         done = {}
@@ -85,14 +173,79 @@ class FitFolder:
             done[result.frame] = result
         return done
 
-    def write_frame(self, result: FrameResult) -> None:
-        atomic_write_text(self.frames_dir / f"{result.frame:06d}.json", json.dumps(frame_to_dict(result)))
+    def missing_frames(self) -> list[int]:
+        done = {int(file.stem) for file in self.frames_dir.glob("*.json")}
+        return [frame for frame in range(len(self.times)) if frame not in done]
 
-    def finish(self, muscle_names, marker_names, times, truth=None) -> None:
-        """Write the CSV tables from the frame files, then mark the run complete."""
+    def write_frame(self, result: FrameResult, captured: np.ndarray, simulated: np.ndarray,
+                    displacement: np.ndarray) -> None:
+        """One finished frame: its displacement (file node order) first, then the record that
+        says the frame is done."""
+        _atomic_write(self._frame_file(result.frame, ".displacement.npy"),
+                      lambda handle: np.save(handle, displacement))
+        record = frame_to_dict(result)
+        record.update(captured_markers=_nullable(captured), simulated_markers=_nullable(simulated))
+        atomic_write_text(self._frame_file(result.frame, ".json"), json.dumps(record))
+
+    def frame_markers(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """Captured (NaN rows for gaps) and simulated marker positions (markers, 3) of a frame."""
+        record = json.loads(self._frame_file(frame, ".json").read_text())
+        return (_from_nullable(record["captured_markers"], 3),
+                _from_nullable(record["simulated_markers"], 3))
+
+    def displacement(self, frame: int) -> np.ndarray:
+        """The frame's equilibrium displacement (file nodes, 3)."""
+        return np.load(self._frame_file(frame, ".displacement.npy"))
+
+    # -- checkpoints --------------------------------------------------------------------------
+    def save_checkpoint(self, frame: int, checkpoint: FitCheckpoint, node_order) -> None:
+        """Store the warm-start state after ``frame`` (collective over the fitter's ranks;
+        ``node_order`` is the problem's ``output.FileNodeOrder``)."""
+        displacement = node_order.gather(checkpoint.displacement)
+        has_jacobian = checkpoint.jacobian_state is not None
+        jacobian_dofs = node_order.gather(checkpoint.jacobian_dofs) if has_jacobian else None
+        if node_order.comm.rank != 0:
+            return
+        arrays = dict(frame=frame, frames_done=checkpoint.frames_done, displacement=displacement,
+                      **_state_arrays("state", checkpoint.state),
+                      **_controls_arrays("problem", checkpoint.problem_controls))
+        if checkpoint.previous_activations is not None:
+            arrays["previous_activations"] = checkpoint.previous_activations
+        if has_jacobian:
+            arrays.update(jacobian_dofs=jacobian_dofs, jacobian_markers=checkpoint.jacobian_markers,
+                          **_state_arrays("jacobian_state", checkpoint.jacobian_state))
+        self.checkpoint_dir.mkdir(exist_ok=True)
+        _atomic_write(self.checkpoint_dir / f"{frame:06d}.npz", lambda handle: np.savez(handle, **arrays))
+
+    def load_checkpoint(self, frame: int, node_order) -> FitCheckpoint | None:
+        """The state saved after ``frame`` on this rank's part of the mesh, None if there is
+        none. Every rank reads the file."""
+        file = self.checkpoint_dir / f"{frame:06d}.npz"
+        if not file.is_file():
+            return None
+        with np.load(file) as data:
+            has_jacobian = "jacobian_dofs" in data
+            return FitCheckpoint(
+                state=_state_from_arrays("state", data),
+                previous_activations=data["previous_activations"] if "previous_activations" in data else None,
+                frames_done=int(data["frames_done"]),
+                displacement=node_order.scatter(data["displacement"]),
+                problem_controls=_controls_from_arrays("problem", data),
+                jacobian_state=_state_from_arrays("jacobian_state", data) if has_jacobian else None,
+                jacobian_dofs=node_order.scatter(data["jacobian_dofs"]) if has_jacobian else None,
+                jacobian_markers=data["jacobian_markers"] if has_jacobian else None)
+
+    def drop_checkpoint(self, frame: int) -> None:
+        (self.checkpoint_dir / f"{frame:06d}.npz").unlink(missing_ok=True)
+
+    # -- the end ------------------------------------------------------------------------------
+    def write_tables(self) -> None:
+        """The CSV tables from the frame files (with errors against the truth if known)."""
         results = [r for _, r in sorted(self.finished_frames().items())]
+        truth = load_truth(self.truth_file) if self.truth_file else None
+        times = self.times
         atomic_write_text(self.path / "activations.csv", _table(
-            ["frame", "time_s"] + list(muscle_names),
+            ["frame", "time_s"] + list(self.muscle_names),
             [[r.frame, times[r.frame], *r.activations] for r in results]))
         atomic_write_text(self.path / "kinematics.csv", _table(
             ["frame", "time_s"] + [f"cranium_M{i}{j}" for i in range(3) for j in range(3)]
@@ -103,12 +256,9 @@ class FitFolder:
               *r.jaw.matrix.reshape(-1), *r.jaw.translation,
               *(r.jaw_tmj if r.jaw_tmj is not None else [np.nan] * 3)] for r in results]))
         atomic_write_text(self.path / "marker_errors.csv", _table(
-            ["frame"] + list(marker_names), [[r.frame, *r.marker_errors] for r in results]))
-        columns = ["frame", "rms_error_mm", "max_error_mm", "initial_rms_mm", "gn_steps", "seconds",
-                   "sensitivities_s", "gn_solve_s", "equilibrium_s", "line_search_s"]
-        rows = [[r.frame, r.rms_error, r.max_error, r.initial_rms, r.gn_steps, r.seconds,
-                 *(r.phases.get(k, 0.0) for k in ("sensitivities", "gn_solve", "equilibrium", "line_search"))]
-                for r in results]
+            ["frame"] + list(self.marker_names), [[r.frame, *r.marker_errors] for r in results]))
+        columns = ["frame", "rms_error_mm", "max_error_mm", "initial_rms_mm", "gn_steps"]
+        rows = [[r.frame, r.rms_error, r.max_error, r.initial_rms, r.gn_steps] for r in results]
         if truth is not None:
             columns += ["activation_error_max", "jaw_error_max"]
             for row, r in zip(rows, results):
@@ -118,7 +268,47 @@ class FitFolder:
         for row, r in zip(rows, results):
             row.append(r.flag)
         atomic_write_text(self.path / "frames.csv", _table(columns, rows))
+        phases = ("sensitivities", "gn_solve", "equilibrium", "line_search")
+        atomic_write_text(self.path / "timings.csv", _table(
+            ["frame", "seconds"] + [f"{phase}_s" for phase in phases],
+            [[r.frame, r.seconds, *(r.phases.get(phase, 0.0) for phase in phases)] for r in results]))
+
+    def mark_finished(self) -> None:
+        """Drop the checkpoints (only a resume needs them), then the IN_PROGRESS mark."""
+        shutil.rmtree(self.checkpoint_dir, ignore_errors=True)
         (self.path / IN_PROGRESS).unlink(missing_ok=True)
+
+
+def _map_arrays(prefix: str, frame: AffineMap) -> dict:
+    return {f"{prefix}_matrix": frame.matrix, f"{prefix}_translation": frame.translation}
+
+
+def _map_from_arrays(prefix: str, data) -> AffineMap:
+    return AffineMap(data[f"{prefix}_matrix"], data[f"{prefix}_translation"])
+
+
+def _state_arrays(prefix: str, state: ControlState) -> dict:
+    arrays = {f"{prefix}_mode": np.array(state.mode), f"{prefix}_activations": state.activations,
+              **_map_arrays(f"{prefix}_cranium", state.cranium), **_map_arrays(f"{prefix}_jaw", state.jaw)}
+    if state.tmj is not None:
+        arrays[f"{prefix}_tmj"] = state.tmj
+    return arrays
+
+
+def _state_from_arrays(prefix: str, data) -> ControlState:
+    return ControlState(str(data[f"{prefix}_mode"]), data[f"{prefix}_activations"],
+                        _map_from_arrays(f"{prefix}_cranium", data), _map_from_arrays(f"{prefix}_jaw", data),
+                        data[f"{prefix}_tmj"] if f"{prefix}_tmj" in data else None)
+
+
+def _controls_arrays(prefix: str, controls: Controls) -> dict:
+    return {f"{prefix}_activations": controls.activations,
+            **_map_arrays(f"{prefix}_cranium", controls.cranium), **_map_arrays(f"{prefix}_jaw", controls.jaw)}
+
+
+def _controls_from_arrays(prefix: str, data) -> Controls:
+    return Controls(data[f"{prefix}_activations"], _map_from_arrays(f"{prefix}_cranium", data),
+                    _map_from_arrays(f"{prefix}_jaw", data))
 
 
 def _table(header, rows) -> str:

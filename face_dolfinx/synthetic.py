@@ -11,6 +11,7 @@ Noise is given as the RMS of the 3D error per marker (per-coordinate sigma = noi
 """
 from dataclasses import dataclass
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -123,3 +124,22 @@ def synthesize_take(problem, markers, model, scenario: str = "speech", n_frames:
     names = marker_names or markers.names
     capture = Capture(names, noisy, frame_rate)
     return capture, TakeTruth(activations, tmj, head, clean)
+
+
+def truth_path(capture_path) -> Path:
+    """Where the truth of a synthetic take is kept: beside the capture, ``NAME.truth.npz``."""
+    capture_path = Path(capture_path)
+    return capture_path.with_name(capture_path.stem + ".truth.npz")
+
+
+def save_truth(path, truth: TakeTruth, muscle_names: list[str]) -> None:
+    np.savez(path, activations=truth.activations, tmj=truth.tmj,
+             head_matrices=np.array([h.matrix for h in truth.head]),
+             head_translations=np.array([h.translation for h in truth.head]),
+             clean_positions=truth.clean_positions, muscle_names=np.array(muscle_names))
+
+
+def load_truth(path) -> TakeTruth:
+    with np.load(path) as data:
+        head = [AffineMap(M, t) for M, t in zip(data["head_matrices"], data["head_translations"])]
+        return TakeTruth(data["activations"], data["tmj"], head, data["clean_positions"])

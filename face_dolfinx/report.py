@@ -1,0 +1,249 @@
+"""The report of a fit folder: plots, rendered frames and a ParaView time series.
+
+Built from the folder's files alone (frame records, per-frame displacements, the model folder
+named in run.json, the copied truth of a synthetic take), serially, so ``run.py report FOLDER``
+can (re)build it at any time, also for an unfinished fit (it says which frames are missing), and
+the result does not depend on how many ranks, chunks or resumes produced the frames.
+
+  activations.png   activation over time of the most active muscles (truth dashed)
+  kinematics.png    jaw opening, head rotation angle and translation over time (truth dashed)
+  marker_error.png  per-frame RMS and largest marker error; with a truth, the capture's own
+                    noise (what a perfect fit would show) dashed and the error against the
+                    clean markers dotted
+  renders/frame_NNNNNN.png   a few frames: deformed skin, captured markers red, simulated green
+  face.xdmf (+ face.h5)      per frame: displacement at the nodes and each muscle's
+                             activation x volume fraction per cell, for ParaView
+"""
+import logging
+import math
+from pathlib import Path
+import tomllib
+
+import h5py
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
+import numpy as np  # noqa: E402
+
+from .output import XdmfSeries  # noqa: E402
+from .render import render_skin  # noqa: E402
+from .results import FitFolder  # noqa: E402
+from .synthetic import load_truth  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+MOST_ACTIVE = 6      # muscles drawn in activations.png
+RENDERED_FRAMES = 4  # frames rendered, evenly spread over the take
+# Faces of a tet as local node triples; face k is opposite node k.
+TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+
+
+def write_report(path, rendered_frames: int = RENDERED_FRAMES) -> list[Path]:
+    """(Re)build the report of the fit folder ``path``; returns the files written."""
+    folder = FitFolder(path)
+    results = folder.finished_frames()
+    missing = folder.missing_frames()
+    if missing:
+        log.warning("%s: %d of %d frames are not fitted yet (%s); the report shows the others",
+                    folder.path, len(missing), len(folder.times), _ranges(missing))
+    if not results:
+        raise ValueError(f"{folder.path}: no finished frame to report on")
+    truth = load_truth(folder.truth_file) if folder.truth_file else None
+    mesh = ModelMesh(folder.settings["model"])
+    written = [_plot_activations(folder, results, truth), _plot_kinematics(folder, results, truth),
+               _plot_marker_error(folder, results, truth)]
+    written += _render_frames(folder, results, mesh, rendered_frames)
+    written.append(_write_series(folder, results, mesh))
+    log.info("report of %s: %s", folder.path, ", ".join(str(p.relative_to(folder.path)) for p in written))
+    return written
+
+
+class ModelMesh:
+    """The parts of a model folder the report needs, read from its files (file numbering)."""
+
+    def __init__(self, model_path):
+        folder = Path(model_path)
+        meta = tomllib.loads((folder / "model.toml").read_text())
+        with h5py.File(folder / "mesh.h5", "r") as h5:
+            self.points = h5["Mesh/flesh/geometry"][:]
+            self.cells = h5["Mesh/flesh/topology"][:].astype(np.int64)
+            facets = h5["MeshTags/boundaries/topology"][:].astype(np.int64)
+            values = h5["MeshTags/boundaries/Values"][:].reshape(-1)
+        self.skin_nodes, self.skin_triangles = _skin(self.points, self.cells,
+                                                     facets[values == meta["boundaries"]["skin"]])
+        self.muscle_names = [entry["name"] for entry in meta["muscles"]]
+        with np.load(folder / "muscles.npz") as data:
+            self.muscle_cells = [data[f"{name}/cells"] for name in self.muscle_names]
+            self.muscle_fractions = [data[f"{name}/fraction"] for name in self.muscle_names]
+
+
+def _skin(points: np.ndarray, cells: np.ndarray, facets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Skin nodes (file numbers) and triangles over them, oriented away from their tet."""
+    n = len(points)
+    if n >= 2**21:  # three node numbers must fit one int64 key
+        raise ValueError(f"{n} mesh nodes: too many for the report's facet matching")
+
+    def key(triples):
+        ordered = np.sort(triples, axis=1)
+        return (ordered[:, 0] * n + ordered[:, 1]) * n + ordered[:, 2]
+
+    faces = cells[:, TET_FACES].reshape(-1, 3)
+    face_keys = key(faces)
+    order = np.argsort(face_keys)
+    position = order[np.searchsorted(face_keys[order], key(facets)).clip(max=len(order) - 1)]
+    if not np.array_equal(face_keys[position], key(facets)):
+        raise ValueError("skin facets that are no face of a tetrahedron")
+    apex = cells.reshape(-1)[position]  # face k of a tet is opposite its node k
+    triangles = facets.copy()
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), points[apex] - a) > 0
+    triangles[inward] = triangles[inward][:, [0, 2, 1]]
+    nodes = np.unique(triangles)
+    return nodes, np.searchsorted(nodes, triangles)
+
+
+def _series(results: dict, frames: int, value) -> np.ndarray:
+    """value(result) per frame, NaN where a frame is not fitted (gaps in the curves)."""
+    first = np.asarray(value(next(iter(results.values()))), dtype=float)
+    table = np.full((frames,) + first.shape, np.nan)
+    for frame, result in results.items():
+        table[frame] = value(result)
+    return table
+
+
+def _rotation_angle(matrix: np.ndarray) -> float:
+    return math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(matrix) - 1.0) / 2.0))))
+
+
+def _figure(rows: int):
+    figure, axes = plt.subplots(rows, 1, figsize=(8.0, 2.6 * rows + 0.6), sharex=True, squeeze=False)
+    return figure, axes[:, 0]
+
+
+def _save(figure, path: Path) -> Path:
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+    return path
+
+
+def _plot_activations(folder: FitFolder, results: dict, truth) -> Path:
+    t = folder.times
+    fitted = _series(results, len(t), lambda r: r.activations)
+    peak = np.nanmax(fitted, axis=0)
+    if truth is not None:
+        peak = np.maximum(peak, truth.activations.max(axis=0))
+    shown = np.argsort(-peak, kind="stable")[:MOST_ACTIVE]
+    figure, (axes,) = _figure(1)
+    for colour, muscle in enumerate(shown):
+        axes.plot(t, fitted[:, muscle], color=f"C{colour}", label=folder.muscle_names[muscle])
+        if truth is not None:
+            axes.plot(t, truth.activations[:, muscle], color=f"C{colour}", linestyle="--")
+    axes.set_ylim(-0.02, max(0.1, 1.1 * float(np.nanmax(peak[shown]))))
+    axes.set_xlabel("time (s)")
+    axes.set_ylabel("activation")
+    axes.set_title(f"The {len(shown)} most active muscles"
+                   + (" (fit solid, truth dashed)" if truth is not None else ""))
+    axes.legend(fontsize=7, ncol=2, loc="upper right")
+    return _save(figure, folder.path / "activations.png")
+
+
+def _plot_kinematics(folder: FitFolder, results: dict, truth) -> Path:
+    t = folder.times
+    exact = all(r.jaw_tmj is not None for r in results.values())
+    # Exact mode fits the TMJ opening itself; the paper's affine jaw frame has its rotation angle.
+    opening = _series(results, len(t), lambda r: math.degrees(r.jaw_tmj[0]) if exact else _rotation_angle(r.jaw.matrix))
+    head_angle = _series(results, len(t), lambda r: _rotation_angle(r.cranium.matrix))
+    head_shift = _series(results, len(t), lambda r: r.cranium.translation)
+    figure, axes = _figure(3)
+    axes[0].plot(t, opening, color="C0", label="fit")
+    axes[0].set_ylabel("jaw opening (deg)" if exact else "jaw rotation (deg)")
+    axes[1].plot(t, head_angle, color="C0")
+    axes[1].set_ylabel("head rotation (deg)")
+    for k, name in enumerate("xyz"):
+        axes[2].plot(t, head_shift[:, k], color=f"C{k}", label=f"head t{name}")
+    axes[2].set_ylabel("head translation (mm)")
+    if truth is not None:
+        axes[0].plot(t, np.degrees(truth.tmj[:, 0]), color="C0", linestyle="--", label="truth")
+        axes[1].plot(t, [_rotation_angle(h.matrix) for h in truth.head], color="C0", linestyle="--")
+        for k in range(3):
+            axes[2].plot(t, [h.translation[k] for h in truth.head], color=f"C{k}", linestyle="--")
+        axes[0].legend(fontsize=7)
+    axes[2].legend(fontsize=7, ncol=3)
+    axes[2].set_xlabel("time (s)")
+    axes[0].set_title("Jaw and head motion" + (" (fit solid, truth dashed)" if truth is not None else ""))
+    return _save(figure, folder.path / "kinematics.png")
+
+
+def _plot_marker_error(folder: FitFolder, results: dict, truth) -> Path:
+    t = folder.times
+    figure, (axes,) = _figure(1)
+    axes.plot(t, _series(results, len(t), lambda r: r.rms_error), color="C0", label="RMS, fit to capture")
+    axes.plot(t, _series(results, len(t), lambda r: r.max_error), color="C0", linewidth=0.7, alpha=0.6,
+              label="largest, fit to capture")
+    if truth is not None and truth.clean_positions.shape[1] == len(folder.marker_names):
+        noise = np.full(len(t), np.nan)
+        to_clean = np.full(len(t), np.nan)
+        for frame in results:
+            captured, simulated = folder.frame_markers(frame)
+            clean = truth.clean_positions[frame]
+            present = np.all(np.isfinite(captured), axis=1)
+            if present.any():
+                noise[frame] = np.sqrt(np.mean(np.sum((captured - clean)[present] ** 2, axis=1)))
+            to_clean[frame] = np.sqrt(np.mean(np.sum((simulated - clean) ** 2, axis=1)))
+        axes.plot(t, noise, color="C1", linestyle="--", label="RMS, capture to truth (its noise)")
+        axes.plot(t, to_clean, color="C2", linestyle=":", label="RMS, fit to truth")
+    axes.set_xlabel("time (s)")
+    axes.set_ylabel("marker error (mm)")
+    axes.set_ylim(bottom=0.0)
+    axes.set_title("Marker error per frame")
+    axes.legend(fontsize=7)
+    return _save(figure, folder.path / "marker_error.png")
+
+
+def _render_frames(folder: FitFolder, results: dict, mesh: ModelMesh, count: int) -> list[Path]:
+    frames = sorted(results)
+    chosen = sorted({frames[i] for i in np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)})
+    out = folder.path / "renders"
+    out.mkdir(exist_ok=True)
+    for stale in out.glob("frame_*.png"):  # a rerun of the report may choose other frames
+        stale.unlink()
+    written = []
+    for frame in chosen:
+        displacement = folder.displacement(frame)
+        moved = mesh.points[mesh.skin_nodes] + displacement[mesh.skin_nodes]
+        captured, simulated = folder.frame_markers(frame)
+        title = (f"frame {frame} ({folder.times[frame]:.2f} s): marker RMS {results[frame].rms_error:.2f} mm\n"
+                 f"red: captured, green: simulated")
+        written.append(render_skin(moved, mesh.skin_triangles, out / f"frame_{frame:06d}.png",
+                                   markers=captured, other_markers=simulated, title=title))
+    return written
+
+
+def _write_series(folder: FitFolder, results: dict, mesh: ModelMesh) -> Path:
+    path = folder.path / "face.xdmf"
+    fractions = []
+    for cells, fraction in zip(mesh.muscle_cells, mesh.muscle_fractions):
+        field = np.zeros(len(mesh.cells))
+        field[cells] = fraction
+        fractions.append(field)
+    with XdmfSeries(path, mesh.points, mesh.cells) as series:
+        for frame in sorted(results):
+            displacement = np.zeros_like(mesh.points)
+            stored = folder.displacement(frame)
+            displacement[:len(stored)] = stored  # nodes no cell uses (if any, last) do not move
+            series.write(float(folder.times[frame]), {"displacement": displacement},
+                         {f"activation_{name}": a * fraction for name, a, fraction
+                          in zip(mesh.muscle_names, results[frame].activations, fractions)})
+    return path
+
+
+def _ranges(frames: list[int]) -> str:
+    """'2-5, 9' for [2, 3, 4, 5, 9]."""
+    parts, start = [], frames[0]
+    for previous, current in zip(frames, frames[1:] + [None]):
+        if current != previous + 1:
+            parts.append(f"{start}" if start == previous else f"{start}-{previous}")
+            start = current
+    return ", ".join(parts)
