@@ -1,13 +1,23 @@
-"""Quasistatic equilibrium by PETSc SNES, with an automatic continuation fallback.
+"""Quasistatic equilibrium by PETSc SNES, with an inversion guard and a continuation fallback.
 
 Newton with a critical-point line search (PETSc ``cp``: the residual is the gradient of the
-energy, so it finds where R(u + s du) . du = 0) solves R(u) = 0 for the given controls. New Dirichlet values enter through the first Newton step (lifting), which spreads a bone
-motion smoothly into the flesh instead of shearing the layer of elements next to the bone. When
-Newton fails (a step inverts an element and the residual is NaN, the tangent is indefinite far
-from equilibrium, the line search stalls), ``solve_continuation`` restarts from the last
-equilibrium and walks the controls towards the target in steps that halve on failure and grow
-again on success; the log says so. Every option is a PETSc option under the solver's prefix
-(default ``face_``), so a user can override any of them from the command line or a config.
+energy, so it finds where R(u + s du) . du = 0) solves R(u) = 0 for the given controls. New
+Dirichlet values enter through the first Newton step (lifting), which spreads a bone motion
+smoothly into the flesh instead of shearing the layer of elements next to the bone.
+
+Far from equilibrium a full Newton step of this stiff, nearly incompressible material inverts
+elements (NaN residual). An ``InversionGuard`` pre-check halves each step until no cell would be
+flattened below a tenth of its rest volume, and a Newton that keeps being cut that way gives up
+early. When Newton fails anyway (the tangent is indefinite far from equilibrium, the line search
+stalls), ``solve_continuation`` restarts from the last equilibrium and walks the controls towards
+the target in steps that halve on failure and grow again on success; the log says so. Measured on
+the 50K face, rest -> smile / jaw opening / pucker: 11 / 17 / 20 Newton iterations before the
+guard, 7 / 20 / 9 with it (only the jaw opening still needs the fallback).
+
+Optionally (``reuse_factorization``) the MUMPS factor is kept as the preconditioner of GMRES across
+Newton iterations and solves, and refreshed only when GMRES slows down: between nearby equilibria
+(frames of a take) the old factor is nearly exact. Every option is a PETSc option under the
+solver's prefix (default ``face_``), so a user can override any of them from the command line.
 """
 from dataclasses import dataclass
 import logging

@@ -88,3 +88,47 @@ def test_bad_controls_name_the_problem(model):
     with pytest.raises(ValueError, match="frontalis_left=1.2"):
         problem.solve(activations={"frontalis_left": 1.2})
     assert np.array_equal(problem.controls.activations, np.zeros(problem.num_muscles))  # unchanged
+
+
+def test_inversion_guard_shortens_an_inverting_step_only(model):
+    """A step that would flatten cells past the bound is halved until none is; a small step is
+    kept whole. Volumes are checked independently of the guard, from the cell vertices."""
+    problem = FaceProblem(model)
+    guard = problem.solver.inversion_guard
+    rest = np.zeros_like(problem.u.x.array)
+    coordinates = problem.dof_coordinates
+    # Squash towards the centre plane y = mean(y): at full step every cell collapses to J = 0.
+    centre = coordinates[:, 1].mean()
+    squash = np.zeros_like(coordinates)
+    squash[:, 1] = coordinates[:, 1] - centre
+    fraction = guard.step_fraction(rest, squash.reshape(-1))
+    assert fraction < 1.0
+    moved = coordinates - fraction * squash
+    cells = guard.vertex_blocks
+    volume = np.linalg.det(moved[cells][:, 1:] - moved[cells][:, :1])
+    ratio = model.mesh.comm.allreduce((volume / guard.rest_volume).min(), op=MPI.MIN)
+    assert ratio >= guard.min_volume_ratio
+    assert fraction == 0.5 ** round(-np.log2(fraction))  # a power of one half
+    small = 0.01 * squash.reshape(-1)
+    assert guard.step_fraction(rest, small) == 1.0
+
+
+def test_factorisation_reuse_gives_the_same_equilibrium_with_fewer_factorisations(model):
+    expression = dict(model.expressions["smile"])
+    expression.pop("jaw_opening_deg", None)
+    shapes, counts = [], []
+    for reuse in (False, True):
+        problem = FaceProblem(model, reuse_factorization=reuse)
+        first = problem.solve(activations=expression)
+        # A nearby second state, as the next frame of a take: the old factor serves it.
+        nearby = {name: 0.9 * value for name, value in expression.items()}
+        second = problem.solve(activations=nearby)
+        assert first.converged and second.converged
+        shapes.append(problem.u.x.array.copy())
+        counts.append((problem.solver.factorizations, first.newton_iterations + second.newton_iterations))
+    difference = np.linalg.norm(shapes[1] - shapes[0]) / np.linalg.norm(shapes[0])
+    assert model.mesh.comm.allreduce(difference, op=MPI.MAX) < 1e-8
+    fresh_factorizations, fresh_newton = counts[0]
+    reused_factorizations, _ = counts[1]
+    assert fresh_factorizations == fresh_newton  # one per Newton iteration
+    assert reused_factorizations < fresh_factorizations / 2

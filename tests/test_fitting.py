@@ -148,3 +148,24 @@ def test_unreachable_targets_are_flagged_and_the_run_continues(take):
     assert np.isfinite(result.activations).all()
     again = fitter.fit_frame(targets, frame=1)  # the next, sane frame is fitted as usual
     assert again.flag == "" and again.rms_error < 0.05
+
+
+def test_warm_frame_activation_steps_stay_in_the_trust_region(take):
+    """After the first frame (radius 1 from rest), each frame starts with the configured radius: a
+    second frame far from the first moves the activations by at most that radius in its first
+    step, doubling while the linear prediction agrees with the equilibrium."""
+    model, sites, targets = take
+    radius = 0.05
+    fitter, _ = fit(model, sites, targets, activation_trust_radius=radius, first_frame_gn_steps=10)
+    steps = []
+    solve_step = fitter._gn_step
+    fitter._gn_step = lambda state, jac, residual: steps.append(
+        (fitter.trust_radius, solve_step(state, jac, residual))) or steps[-1][1]
+    far = FaceProblem(model)
+    far.solve(activations=np.array([0.1, 0.8, 0.2]), cranium=HEAD, jaw=jaw_pose(model.jaw, *TMJ_TRUE))
+    fitter.fit_frame(MarkerSet(far, sites).positions(far.u.x.array, HEAD), max_steps=4)
+    assert steps[0][0] == radius
+    for trust_radius, step in steps:
+        assert np.abs(step[:3]).max() <= trust_radius + 1e-12
+    assert np.abs(steps[0][1][:3]).max() == pytest.approx(radius)  # the far target pulls to the edge
+    assert max(trust_radius for trust_radius, _ in steps) > radius  # ... and the region grew
