@@ -29,39 +29,66 @@ class EquilibriumSensitivity:
         """Assemble and factorise the tangent at the current shape."""
         self.solver.factorize()
 
-    def _solve(self) -> np.ndarray:
-        self.krylov_iterations += self.solver.solve_tangent(self._rhs, self._solution)
+    def _solve_all(self, fill_rhs, count: int) -> np.ndarray:
+        """K^-1 b_j for j < count, ``fill_rhs(j)`` putting b_j into ``self._rhs``: (count, local dofs
+        incl. ghosts). With a direct factor, all right-hand sides go to MUMPS as one dense block
+        (20K face, 32 muscles: 0.13 s against 1.0 s one by one); otherwise one Krylov solve each."""
+        owned = self._rhs.getLocalSize()
+        pc = self.solver.snes.getKSP().getPC()
+        # An old factor (factorisation reuse) is only a preconditioner: then Krylov solves.
+        block = pc.getType() in ("cholesky", "lu") and count > 1 and self.solver.factor_is_current
+        if block:
+            rhs = PETSc.Mat().createDense([(owned, self._rhs.getSize()), (None, count)],
+                                          comm=self.problem.comm)
+            rhs.setUp()
+            values = rhs.getDenseArray()
+        columns = []
+        for j in range(count):
+            fill_rhs(j)
+            if block:
+                values[:, j] = self._rhs.array_r
+            else:
+                self.krylov_iterations += self.solver.solve_tangent(self._rhs, self._solution)
+                columns.append(self._with_ghosts(self._solution.array_r))
+        if not block:
+            return np.array(columns).reshape(count, -1)
+        rhs.assemble()
+        solution = rhs.duplicate()
+        pc.getFactorMatrix().matSolve(rhs, solution)
+        solved = solution.getDenseArray()
+        columns = [self._with_ghosts(solved[:, j]) for j in range(count)]
+        rhs.destroy()
+        solution.destroy()
+        return np.array(columns).reshape(count, -1)
+
+    def _with_ghosts(self, owned_values: np.ndarray) -> np.ndarray:
+        self._solution.array[:] = owned_values
         self._solution.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         with self._solution.localForm() as local:
             return local.array.copy()
 
     def activation_columns(self, muscles=None) -> np.ndarray:
         """dX/da_i for the given muscles (default all): (k, local dofs incl. ghosts)."""
-        muscles = range(self.problem.num_muscles) if muscles is None else muscles
-        columns = []
-        for i in muscles:
-            self.problem.active_force(i, out=self._rhs)
-            columns.append(self._solve())
-        return np.array(columns).reshape(len(columns), -1)
+        muscles = list(range(self.problem.num_muscles) if muscles is None else muscles)
+        return self._solve_all(lambda j: self.problem.active_force(muscles[j], out=self._rhs), len(muscles))
 
     def boundary_columns(self, bone_derivatives: np.ndarray) -> np.ndarray:
         """dX/db for parameters that move the bone-attached nodes non-rigidly (the jaw).
 
         ``bone_derivatives`` (k, num bone blocks, 3): dX^C/db_i at ``problem.bone_blocks``.
         """
-        columns = []
         jacobian_form = self.problem.solver.jacobian_form
-        for derivative in bone_derivatives:
+
+        def lifted(j):
             values = self._lift.x.array.reshape(-1, 3)
             values[:] = 0.0
-            values[self.problem.bone_blocks] = derivative
+            values[self.problem.bone_blocks] = bone_derivatives[j]
             with self._rhs.localForm() as local:
                 local.set(0.0)
             fem_petsc.apply_lifting(self._rhs, [jacobian_form], bcs=[[self._lift_bc]])
             self._rhs.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
             fem_petsc.set_bc(self._rhs, [self._lift_bc])
-            columns.append(self._solve())
-        return np.array(columns).reshape(len(columns), -1)
+        return self._solve_all(lifted, len(bone_derivatives))
 
     def cranium_columns(self) -> np.ndarray:
         """dX/d(M_c, t_c) for the 12 affine numbers (row-major M, then t), analytic.

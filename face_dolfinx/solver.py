@@ -173,6 +173,7 @@ class QuasistaticSolver:
         self.max_krylov_iterations = max_krylov_iterations
         self.factorizations = 0     # numerical factorisations so far (a cost counter)
         self._factor_is_current = False  # the factor belongs to the tangent at the unknown
+        self._fresh_factor_in_newton = True  # the last Newton iteration factorised its tangent
         self._refresh_factor = True
         self._snes_factored_once = False
         self.bcs = bcs
@@ -279,6 +280,7 @@ class QuasistaticSolver:
         A.zeroEntries()
         fem_petsc.assemble_matrix(A, self.jacobian_form, bcs=self.bcs)
         A.assemble()
+        self._factor_is_current = False  # the Newton step moves the unknown away from it
         if not self.reuse_factorization:
             self.factorizations += 1
             return
@@ -291,7 +293,7 @@ class QuasistaticSolver:
         elif refresh:
             self._factor(A)
         self._refresh_factor = False
-        self._factor_is_current = refresh
+        self._fresh_factor_in_newton = refresh
 
     def _factor(self, A: PETSc.Mat) -> None:
         # Set up the PC now: SNES (lag -1) then leaves it as it is.
@@ -303,10 +305,15 @@ class QuasistaticSolver:
         ksp.getPC().setReusePreconditioner(self.reuse_factorization)
         self.factorizations += 1
 
+    @property
+    def factor_is_current(self) -> bool:
+        """True from ``factorize`` until the next Newton iteration: the factor is that of the
+        tangent at the unknown."""
+        return self._factor_is_current
+
     def factorize(self) -> None:
         """Assemble and factorise the tangent at the unknown (for sensitivities; in reuse mode
         the factor then also serves the next Newton solves)."""
-        self.unknown.vector.copy(self._solution)
         A = self.tangent
         A.zeroEntries()
         fem_petsc.assemble_matrix(A, self.jacobian_form, bcs=self.bcs)
@@ -335,10 +342,11 @@ class QuasistaticSolver:
 
     def newton(self) -> tuple[bool, int, str]:
         """One SNES solve from the current unknown; Dirichlet values are reached by the Newton steps."""
+        self._factor_is_current = False  # the controls, hence the tangent, may have changed
         self.unknown.vector.copy(self._solution)
         self.snes.solve(None, self._solution)
         reason = self.snes.getConvergedReason()
-        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE and not self._factor_is_current:
+        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE and not self._fresh_factor_in_newton:
             # GMRES with an old factor failed: refactorise and try once more.
             self._refresh_factor = True
             self.unknown.vector.copy(self._solution)
