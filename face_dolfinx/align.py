@@ -298,16 +298,7 @@ def read_correspondence_file(path) -> dict[str, str]:
     names, blank lines and lines starting with ``#`` are skipped.
     A marker or a landmark used twice is an error. Errors name the file and, where known, the line.
     """
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in (".toml", ".csv"):
-        raise AlignmentError(f"{path}: unknown correspondence file type {path.suffix!r} (use .toml or .csv)")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise AlignmentError(f"{path}: no such file") from None
-    except UnicodeDecodeError:
-        raise AlignmentError(f"{path}: not UTF-8 text") from None
+    path, suffix, text = read_pair_file(path, "correspondence", AlignmentError)
     pairs = _toml_pairs(path, text) if suffix == ".toml" else _csv_pairs(path, text)
     if not pairs:
         raise AlignmentError(f"{path}: no correspondences")
@@ -320,6 +311,20 @@ def read_correspondence_file(path) -> dict[str, str]:
             first_use[kind, name] = line
         correspondence[marker] = landmark
     return correspondence
+
+
+def read_pair_file(path, what: str, error: type[Exception]) -> tuple[Path, str, str]:
+    """Path, suffix (.toml or .csv) and UTF-8 text of a small name-pairs file; ``error`` names it."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".toml", ".csv"):
+        raise error(f"{path}: unknown {what} file type {path.suffix!r} (use .toml or .csv)")
+    try:
+        return path, suffix, path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except UnicodeDecodeError:
+        raise error(f"{path}: not UTF-8 text") from None
 
 
 def _toml_pairs(path, text):

@@ -39,7 +39,7 @@ import numpy as np
 from mpi4py import MPI
 
 from . import model as model_format
-from .align import AlignmentError, Similarity, align_by_correspondences, similarity_transform
+from .align import AlignmentError, Similarity, align_by_correspondences, read_pair_file, similarity_transform
 from .model import JawGeometry, Muscle
 from .surface import SkinSurface
 from .warp import RBFWarp, fiber_transform, inverted_tets
@@ -437,14 +437,7 @@ def read_landmark_file(path, scan: SurfaceScan, units: str = "mm") -> dict[str, 
     ``units``. TOML: a ``[landmarks]`` table, ``nose_tip = 1234`` or ``nose_tip = [x, y, z]``.
     CSV: rows ``name,vertex`` or ``name,x,y,z`` (an optional header row, # comments).
     """
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in (".toml", ".csv"):
-        raise SubjectError(f"{path}: unknown landmark file type {path.suffix!r} (use .toml or .csv)")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SubjectError(f"{path}: no such file") from None
+    path, suffix, text = read_pair_file(path, "landmark", SubjectError)
     if suffix == ".toml":
         try:
             table = tomllib.loads(text).get("landmarks")
