@@ -241,7 +241,7 @@ def fit(model, args) -> None:
                            temporal_smoothness=args.smoothness)
     run = dict(capture=str(capture_path.resolve()), model=str(model.path), mode=args.mode,
                gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames,
-               chunks=args.chunks)
+               chunks=args.chunks, reuse_factorization=args.reuse_factorization)
     run.update(alignment=placement.method, neutral_frame=placement.neutral_frame,
                correspondence=str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None)
     alignment_record = json.dumps(placement.to_json(), indent=2)
@@ -269,7 +269,7 @@ def fit(model, args) -> None:
     group = comm.rank * groups // comm.size
     group_comm = comm.Split(group, comm.rank) if groups > 1 else comm
     group_model = load_model(model.path, group_comm) if groups > 1 else model
-    problem = FaceProblem(group_model)
+    problem = FaceProblem(group_model, reuse_factorization=args.reuse_factorization)
     node_order = FileNodeOrder(problem.V)
     markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
     # A chunk is fitted from its first unfinished frame on, so that every frame after it starts
@@ -491,6 +491,11 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--smoothness", type=float, default=0.0,
                    help="temporal smoothness weight on activations (off by default)")
     p.add_argument("--truth", help="truth .npz of a synthetic take (default: next to the capture)")
+    p.add_argument("--reuse-factorization", action="store_true",
+                   help="keep the MUMPS factor as a GMRES preconditioner across Newton solves and "
+                        "frames, refactorising only when GMRES slows down (faster on large meshes; "
+                        "a resumed run then matches an uninterrupted one to solver tolerance, not "
+                        "bit for bit)")
     p.add_argument("--chunks", type=int, default=1,
                    help="split the take into independent chunks (each starts from rest); under "
                         "mpirun the ranks share them out")

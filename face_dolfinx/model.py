@@ -20,7 +20,10 @@ from mpi4py import MPI
 # Imported with the module, on every rank: importing DOLFINx initialises PETSc, which is collective
 # over COMM_WORLD, so it must not first happen inside rank-0-only work (the face generator loads
 # the model it built on rank 0 alone while the other ranks wait).
-from dolfinx import io as dolfinx_io, mesh as dolfinx_mesh
+from dolfinx import cpp as dolfinx_cpp, io as dolfinx_io, mesh as dolfinx_mesh
+import scipy.sparse as sp
+from scipy.sparse.csgraph import reverse_cuthill_mckee
+import ufl
 
 MODEL_FILE, MESH_FILE, HEAVY_FILE, MUSCLES_FILE = "model.toml", "mesh.xdmf", "mesh.h5", "muscles.npz"
 MESH_NAME, TAGS_NAME = "flesh", "boundaries"
@@ -124,6 +127,59 @@ class FaceModel:
 # ---------------------------------------------------------------------------------------------
 # Loading
 # ---------------------------------------------------------------------------------------------
+def _read_mesh_reproducibly(xdmf, name: str) -> dolfinx_mesh.Mesh:
+    """``XDMFFile.read_mesh``, but with a partition that is the same on every launch.
+
+    The SCOTCH partitioner of the Debian packages gives a different partition on each run of the
+    same command (measured: different owned cells on 2 ranks, the same dual graph), so results
+    differed at round-off between runs and a resumed fit was not bit-identical to an uninterrupted
+    one. Here the cell dual graph is ordered by reverse Cuthill-McKee on rank 0 and cut into equal
+    contiguous pieces: deterministic slabs, as compact as a graph partition for the few ranks of a
+    workstation (MUMPS orders the assembled matrix itself, whatever the partition).
+    """
+    shape, degree = xdmf.read_cell_type(name)
+    cells = xdmf.read_topology_data(name)
+    x = xdmf.read_geometry_data(name)
+    cmap = dolfinx_cpp.fem.CoordinateElement(shape, degree)
+    mesh = dolfinx_cpp.mesh.create_mesh(
+        xdmf.comm(), dolfinx_cpp.graph.AdjacencyList_int64(cells), cmap, x,
+        dolfinx_mesh.GhostMode.shared_facet, dolfinx_cpp.mesh.create_cell_partitioner(_slab_partition))
+    mesh.name = name
+    cell = ufl.Cell(shape.name, geometric_dimension=x.shape[1])
+    return dolfinx_mesh.Mesh(mesh, ufl.Mesh(ufl.VectorElement("Lagrange", cell, degree)))
+
+
+def _slab_partition(comm, parts: int, graph, ghosting: bool):
+    """Destination ranks of each local cell: RCM order of the whole dual graph cut in ``parts``
+    gives the owner; with ``ghosting``, the owners of its facet neighbours follow (ghost copies,
+    as DOLFINx's own partitioners return them for GhostMode.shared_facet)."""
+    offsets, links = np.asarray(graph.offsets), np.asarray(graph.array)
+    degrees = comm.gather(np.diff(offsets), root=0)
+    neighbours = comm.gather(links, root=0)
+    pieces = None
+    if comm.rank == 0:
+        counts = np.concatenate(degrees)
+        n = len(counts)
+        rows = np.repeat(np.arange(n), counts)
+        adjacency = sp.csr_matrix((np.ones(len(rows)), (rows, np.concatenate(neighbours))), shape=(n, n))
+        order = reverse_cuthill_mckee(adjacency, symmetric_mode=True)
+        owner = np.empty(n, dtype=np.int32)
+        owner[order] = np.arange(n) * parts // n
+        ranks = [[int(owner[i])] for i in range(n)]
+        if ghosting:
+            neighbour_owner = owner[adjacency.indices]
+            row = np.repeat(np.arange(n), np.diff(adjacency.indptr))
+            for i in np.unique(row[neighbour_owner != owner[row]]):
+                others = set(neighbour_owner[adjacency.indptr[i]:adjacency.indptr[i + 1]].tolist()) - {owner[i]}
+                ranks[i] += sorted(others)
+        starts = np.cumsum([0] + [len(d) for d in degrees])
+        pieces = [ranks[a:b] for a, b in zip(starts[:-1], starts[1:])]
+    mine = comm.scatter(pieces, root=0)
+    offsets = np.cumsum([0] + [len(r) for r in mine]).astype(np.int32)
+    flat = np.array([rank for r in mine for rank in r], dtype=np.int32)
+    return dolfinx_cpp.graph.AdjacencyList_int32(flat, offsets)
+
+
 def load_model(path, comm=MPI.COMM_WORLD) -> FaceModel:
     """Read and check a model folder; the mesh is distributed over ``comm`` (collective)."""
     folder = Path(path)
@@ -137,7 +193,7 @@ def load_model(path, comm=MPI.COMM_WORLD) -> FaceModel:
 
     try:
         with dolfinx_io.XDMFFile(comm, str(folder / MESH_FILE), "r") as xdmf:
-            domain = xdmf.read_mesh(name=MESH_NAME, ghost_mode=dolfinx_mesh.GhostMode.shared_facet)
+            domain = _read_mesh_reproducibly(xdmf, MESH_NAME)
             domain.topology.create_connectivity(2, 3)
             tags = xdmf.read_meshtags(domain, name=TAGS_NAME)
     except RuntimeError as error:
