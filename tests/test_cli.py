@@ -89,9 +89,8 @@ def test_resume_after_stop_is_bit_identical(fitted_take, shared_tmp, capsys):
     """Stopped after 2 frames, then rerun: every table, plot, render and the XDMF series are the
     bytes of the uninterrupted fit (only timings.csv differs).
 
-    Under MPI the tables differ at round-off even though the mesh partition is now reproducible
-    (model._slab_partition); the source is not pinned down (the parallel MUMPS factorisation is a
-    suspect). There the resumed tables must agree with the uninterrupted ones to 1e-7, far closer
+    Under MPI even two uninterrupted fits in one process (same, reproducible partition) differ
+    at round-off (measured; the parallel MUMPS factorisation is the suspect). There the resumed tables must agree with the uninterrupted ones to 1e-7, far closer
     than re-solving from the last frame's controls came (2e-3 in activations)."""
     take, model, uninterrupted = fitted_take
     out = shared_tmp / "resumed"
