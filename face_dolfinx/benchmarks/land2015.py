@@ -479,8 +479,10 @@ def _agreeing(values: list[str]) -> str:
     return values[0] if len(set(values)) == 1 else " / ".join(values)
 
 
-def results_table(problem: int, levels: list[int], ranks: list[int], mpiexec: str) -> str:
-    """Markdown table of one problem: a row per formulation and level, run on each of ``ranks``.
+def results_table(problem: int, levels: list[int], ranks: list[int], mpiexec: str,
+                  formulations=TABLE_FORMULATIONS):
+    """Markdown table of one problem, line by line as the runs finish (a long table is not lost
+    to an interruption): a row per formulation and level, run on each of ``ranks``.
 
     Quantities, Newton iterations and load steps are one value where all rank counts printed the
     same (to the six printed digits), else "1-rank value / 2-rank value"; a row that found no
@@ -489,9 +491,10 @@ def results_table(problem: int, levels: list[int], ranks: list[int], mpiexec: st
     quantities = TABLE_QUANTITIES[problem]
     header = (["formulation", "K", "dofs", *quantities.values(), "Newton", "steps"]
               + [f"solve s, {n} rank{'s' if n > 1 else ''}" for n in ranks])
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    yield "| " + " | ".join(header) + " |"
+    yield "|" + "---|" * len(header)
     undeformed_volumes = {}
-    for formulation, degree in TABLE_FORMULATIONS:
+    for formulation, degree in formulations:
         for refine in levels:
             case_args = ["--problem", str(problem), "--refine", str(refine),
                          "--formulation", formulation, "--degree", str(degree)]
@@ -508,12 +511,11 @@ def results_table(problem: int, levels: list[int], ranks: list[int], mpiexec: st
                 if "undeformed_cavity_volume_mm3" in runs[0]:
                     undeformed_volumes[refine] = runs[0]["undeformed_cavity_volume_mm3"]
             row += [run.get("solve_seconds", "-") for run in runs]
-            lines.append("| " + " | ".join(row) + " |")
+            yield "| " + " | ".join(row) + " |"
     if undeformed_volumes:
-        lines.append("")
-        lines.append("Undeformed cavity volume (mm^3, exact 2492.13): " + ", ".join(
-            f"K = {refine}: {volume}" for refine, volume in sorted(undeformed_volumes.items())))
-    return "\n".join(lines)
+        yield ""
+        yield "Undeformed cavity volume (mm^3, exact 2492.13): " + ", ".join(
+            f"K = {refine}: {volume}" for refine, volume in sorted(undeformed_volumes.items()))
 
 
 def main(argv=None) -> None:
@@ -538,14 +540,21 @@ def main(argv=None) -> None:
                        default=sorted(PROBLEMS))
     table.add_argument("--levels", type=int, nargs="+", default=[0, 1])
     table.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
+    table.add_argument("--formulations", nargs="+", metavar="FORMULATION:DEGREE",
+                       choices=[f"{name}:{degree}" for name, degree in TABLE_FORMULATIONS],
+                       default=[f"{name}:{degree}" for name, degree in TABLE_FORMULATIONS])
     table.add_argument("--mpiexec", default="mpirun")
     args = parser.parse_args(argv)
     if args.table:
         if MPI.COMM_WORLD.size > 1:
             parser.error("--table starts its own MPI runs: run it on one process")
         for problem in args.problems:
-            print(f"### Problem {problem}\n")
-            print(results_table(problem, args.levels, args.ranks, args.mpiexec) + "\n", flush=True)
+            print(f"### Problem {problem}\n", flush=True)
+            formulations = [(name, int(degree)) for name, degree in
+                            (item.split(":") for item in args.formulations)]
+            for line in results_table(problem, args.levels, args.ranks, args.mpiexec, formulations):
+                print(line, flush=True)
+            print(flush=True)
         return
     if args.problem is None:
         parser.error("--problem is required (or --table)")
