@@ -8,6 +8,8 @@
   noise-free 4-frame speech take (seed 3): activation error 0.43-0.49 (basis, linearised) against
   0.009-0.013 for the FE fitter, marker error 0.34-0.42 mm against 0.008-0.024 mm; asserted with a
   factor 5 of margin on the activations.
+- The training take (section 4.2) contracts every muscle fully on its own and takes each jaw
+  degree of freedom to its limit.
 - Basis refinement (section 4.2) lowers the training-take residual of a deliberately distorted
   draft basis, and reports the errors it went through.
 """
@@ -23,7 +25,7 @@ from face_dolfinx.bones import jaw_pose, rigid_map, rotation
 from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet, track
 from face_dolfinx.model import load_model
 from face_dolfinx.problem import FaceProblem
-from face_dolfinx.synthetic import synthesize_take
+from face_dolfinx.synthetic import control_curves, synthesize_take, training_segments
 
 HEAD = rigid_map(rotation([0.3, 1.0, 0.2], 0.08), [0.0, -10.0, 40.0], [2.0, -1.0, 3.0])
 
@@ -142,3 +144,15 @@ def test_refinement_lowers_the_training_residual(model, linearized):
     assert min(history) < 0.1 * history[0]
     fitter = LinearFitter(refined)  # the returned basis is the best one tried
     assert sum(fitter.solve(p).objective for p in positions) == pytest.approx(min(history), rel=1e-9)
+
+
+def test_training_take_isolates_every_muscle_and_jaw_limit(model):
+    segments = training_segments(model)
+    activations, tmj, _ = control_curves(model, "training", 2 * len(segments), head_motion=False)
+    for muscle in range(len(model.muscles)):
+        alone = np.flatnonzero((activations[:, muscle] == 1.0) & (activations.sum(axis=1) == 1.0)
+                               & (np.abs(tmj).sum(axis=1) == 0.0))
+        assert alone.size == 1, model.muscle_names[muscle]
+        assert activations[alone[0] - 1, muscle] == 0.5  # the level ramps up over the segment
+    for k, limit in enumerate(tmj_limits(model.jaw)):
+        assert np.any((tmj[:, k] == limit) & (activations.sum(axis=1) == 0.0))
