@@ -464,7 +464,9 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
 
     p = sub.add_parser("synth", help="synthetic take with known truth")
     model_options(p, "takes/speech.trc")
-    p.add_argument("--scenario", default="speech", help="smile, jaw, brow, speech or mixed")
+    p.add_argument("--scenario", default="speech",
+                   help="smile, jaw, brow, speech, mixed or training (Choe & Ko's: each muscle alone, "
+                        "jaw limits, expressions; give frames = a multiple of the segment count)")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--rate", type=float, default=60.0, help="frame rate (Hz)")
     p.add_argument("--noise", type=float, default=0.5, help="marker noise, RMS of the 3D error (mm)")

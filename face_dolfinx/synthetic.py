@@ -18,7 +18,7 @@ import numpy as np
 from .bones import AffineMap, jaw_pose, rigid_map, rotation
 from .capture import Capture
 
-SCENARIOS = ("smile", "jaw", "brow", "speech", "mixed")
+SCENARIOS = ("smile", "jaw", "brow", "speech", "mixed", "training")
 
 
 @dataclass
@@ -76,6 +76,8 @@ def control_curves(model, scenario: str, n_frames: int, head_motion: bool = True
         if scenario == "mixed":
             drive("smile", _smooth_pulse(t, 0.2, 0.5, 0.8))
             drive("brow_raise", _smooth_pulse(t, 0.5, 0.7, 0.95))
+    elif scenario == "training":
+        _training_curves(model, n_frames, activations, tmj, drive)
     activations = np.clip(activations, 0.0, 1.0)
 
     head = []
@@ -88,6 +90,37 @@ def control_curves(model, scenario: str, n_frames: int, head_motion: bool = True
         else:
             head.append(AffineMap())
     return activations, tmj, head
+
+
+def training_segments(model) -> list[tuple[str, object]]:
+    """The segments of the "training" take, in order: ("muscle", index) for every muscle fully
+    contracted on its own, ("tmj", limits) for each jaw degree of freedom at its limit (opening,
+    either condyle slide, both slides: protrusion), ("expression", name) for the model's named
+    expressions (compound actuation)."""
+    max_opening = math.asin(model.jaw.max_opening_sine)
+    track = model.jaw.track_length
+    jaw_limits = [(max_opening, 0.0, 0.0), (0.0, track, 0.0), (0.0, 0.0, track), (0.0, track, track)]
+    return ([("muscle", i) for i in range(len(model.muscles))]
+            + [("tmj", np.array(limits)) for limits in jaw_limits]
+            + [("expression", name) for name, spec in model.expressions.items() if spec])
+
+
+def _training_curves(model, n_frames, activations, tmj, drive) -> None:
+    """Choe & Ko's training data (2001, section 4.2): the frames are shared out over
+    ``training_segments`` in order, and within a segment the level ramps up to full over its
+    frames (two frames per segment: 0.5 and 1). Give a multiple of the segment count."""
+    segments = training_segments(model)
+    segment_of_frame = np.minimum(np.arange(n_frames) * len(segments) // n_frames, len(segments) - 1)
+    for number, (kind, what) in enumerate(segments):
+        frames = np.flatnonzero(segment_of_frame == number)
+        level = np.zeros(n_frames)
+        level[frames] = np.arange(1, len(frames) + 1) / max(len(frames), 1)
+        if kind == "muscle":
+            activations[:, what] = np.maximum(activations[:, what], level)
+        elif kind == "tmj":
+            tmj[:] = np.maximum(tmj, level[:, None] * what)
+        else:
+            drive(what, level)
 
 
 def synthesize_take(problem, markers, model, scenario: str = "speech", n_frames: int = 30,
