@@ -55,8 +55,9 @@ class FitSettings:
     # Exact mode: trust region on the activation step (max |da|), adapted within a frame by how
     # well the linear prediction matched (doubles on agreement, halves otherwise). Noise in
     # poorly identified muscle combinations otherwise moves activations by 0.5 in one step, and
-    # each such step then costs 10+ Newton iterations at equilibrium.
-    activation_trust_radius: float = 0.1
+    # each such step then costs 10+ Newton iterations at equilibrium (docs/fitting.md: 0.1 was
+    # faster but under-fitted fast takes in 3 steps).
+    activation_trust_radius: float = 0.25
     penalty_growth: float = 1.05        # paper mode: rho_{i+1} = 1.05 rho_i
     penalty_final_ratio: float = 1e6    # ... until rho = 1e6 phi(c)
 
