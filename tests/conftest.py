@@ -1,6 +1,8 @@
 """Shared fixtures. The small built-in face is built once per session (and cached on disk under
 meshes/cache/, so later sessions find it instantly); under ``mpirun -n 2 python -m pytest``
 every rank gets the same folder."""
+import pathlib
+
 import pytest
 from mpi4py import MPI
 
@@ -11,3 +13,11 @@ SMALL_FACE_TETS = 5000
 def builtin_model_path():
     from face_dolfinx.anatomy import build_builtin_face
     return build_builtin_face(target_tets=SMALL_FACE_TETS, comm=MPI.COMM_WORLD)
+
+
+@pytest.fixture(scope="module")
+def shared_dir(tmp_path_factory, request):
+    """One temporary folder per test module for all ranks (each rank's tmp_path differs under
+    mpirun)."""
+    folder = tmp_path_factory.mktemp(request.module.__name__.rpartition(".")[2])
+    return pathlib.Path(MPI.COMM_WORLD.bcast(str(folder), root=0))

@@ -27,12 +27,6 @@ NOISE = 0.2  # mm, RMS of the 3D error
 
 
 @pytest.fixture(scope="module")
-def shared_dir(tmp_path_factory):
-    """One temporary folder for all ranks (each rank's tmp_path differs under mpirun)."""
-    return pathlib.Path(MPI.COMM_WORLD.bcast(str(tmp_path_factory.mktemp("align")), root=0))
-
-
-@pytest.fixture(scope="module")
 def model(builtin_model_path):
     return load_model(builtin_model_path)
 

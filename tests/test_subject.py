@@ -1,7 +1,6 @@
 """Subject adaptation (face_dolfinx.subject, `build --subject` and `build --surface`): the built-in
 5K face warped onto synthetic subjects whose true shape is known."""
 import json
-import pathlib
 
 import meshio
 from mpi4py import MPI
@@ -33,11 +32,6 @@ def affine_subject(points):
 def puffed_subject(points):
     puff = PUFF_MM * np.exp(-np.sum((points - PUFF_CENTRE) ** 2, axis=-1) / (2 * PUFF_SIGMA ** 2))
     return affine_subject(points + puff[..., None] * np.array([0.5, 0.0, 1.0]) / np.sqrt(1.25))
-
-
-@pytest.fixture(scope="module")
-def shared_dir(tmp_path_factory):
-    return pathlib.Path(MPI.COMM_WORLD.bcast(str(tmp_path_factory.mktemp("subject")), root=0))
 
 
 @pytest.fixture(scope="module")
