@@ -165,19 +165,24 @@ def _slab_partition(comm, parts: int, graph, ghosting: bool):
         order = reverse_cuthill_mckee(adjacency, symmetric_mode=True)
         owner = np.empty(n, dtype=np.int32)
         owner[order] = np.arange(n) * parts // n
-        ranks = [[int(owner[i])] for i in range(n)]
+        # Destinations as (cell, rank) pairs: the owner first, then (with ghosting) the other
+        # owners among the cell's facet neighbours, each once.
+        cell, rank = np.arange(n), owner
         if ghosting:
-            neighbour_owner = owner[adjacency.indices]
             row = np.repeat(np.arange(n), np.diff(adjacency.indptr))
-            for i in np.unique(row[neighbour_owner != owner[row]]):
-                others = set(neighbour_owner[adjacency.indptr[i]:adjacency.indptr[i + 1]].tolist()) - {owner[i]}
-                ranks[i] += sorted(others)
+            neighbour_owner = owner[adjacency.indices]
+            foreign = neighbour_owner != owner[row]
+            ghost = np.unique(row[foreign].astype(np.int64) * parts + neighbour_owner[foreign])
+            cell = np.concatenate([cell, ghost // parts])
+            rank = np.concatenate([rank, (ghost % parts).astype(np.int32)])
+        by_cell = np.argsort(cell, kind="stable")  # owners stay ahead of ghosts
+        cell, rank = cell[by_cell], rank[by_cell]
         starts = np.cumsum([0] + [len(d) for d in degrees])
-        pieces = [ranks[a:b] for a, b in zip(starts[:-1], starts[1:])]
-    mine = comm.scatter(pieces, root=0)
-    offsets = np.cumsum([0] + [len(r) for r in mine]).astype(np.int32)
-    flat = np.array([rank for r in mine for rank in r], dtype=np.int32)
-    return dolfinx_cpp.graph.AdjacencyList_int32(flat, offsets)
+        bounds = np.searchsorted(cell, starts)
+        pieces = [(rank[lo:hi], cell[lo:hi] - first) for lo, hi, first in zip(bounds[:-1], bounds[1:], starts)]
+    destinations, local_cell = comm.scatter(pieces, root=0)
+    cell_offsets = np.searchsorted(local_cell, np.arange(len(offsets))).astype(np.int32)
+    return dolfinx_cpp.graph.AdjacencyList_int32(destinations.astype(np.int32), cell_offsets)
 
 
 def load_model(path, comm=MPI.COMM_WORLD) -> FaceModel:

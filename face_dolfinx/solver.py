@@ -211,7 +211,6 @@ class QuasistaticSolver:
         self.snes.setFunction(self._assemble_residual, self._residual_vector)
         self.snes.setJacobian(self._assemble_tangent, self.tangent)
         if inversion_guard is not None:
-            self._guard_cuts = 0
             self.snes.setConvergenceTest(self._converged)
             self._guard_x, self._guard_step = unknown.vector.duplicate(), unknown.vector.duplicate()
             self.snes.setLineSearchPreCheck(self._guard_step_length)
@@ -276,10 +275,13 @@ class QuasistaticSolver:
             return reasons.DIVERGED_LINE_SEARCH
         return reasons.CONVERGED_ITERATING
 
-    def _assemble_tangent(self, snes, x, A, P):
+    def _assemble_tangent_matrix(self, A: PETSc.Mat) -> None:
         A.zeroEntries()
         fem_petsc.assemble_matrix(A, self.jacobian_form, bcs=self.bcs)
         A.assemble()
+
+    def _assemble_tangent(self, snes, x, A, P):
+        self._assemble_tangent_matrix(A)
         self._factor_is_current = False  # the Newton step moves the unknown away from it
         if not self.reuse_factorization:
             self.factorizations += 1
@@ -314,11 +316,8 @@ class QuasistaticSolver:
     def factorize(self) -> None:
         """Assemble and factorise the tangent at the unknown (for sensitivities; in reuse mode
         the factor then also serves the next Newton solves)."""
-        A = self.tangent
-        A.zeroEntries()
-        fem_petsc.assemble_matrix(A, self.jacobian_form, bcs=self.bcs)
-        A.assemble()
-        self._factor(A)
+        self._assemble_tangent_matrix(self.tangent)
+        self._factor(self.tangent)
         self._factor_is_current = True
 
     def solve_tangent(self, rhs: PETSc.Vec, out: PETSc.Vec) -> int:
