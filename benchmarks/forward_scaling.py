@@ -84,7 +84,7 @@ def main():
     parser.add_argument("--expressions", nargs="+", default=["smile", "jaw_open"])
     parser.add_argument("--degree", type=int, default=1)
     parser.add_argument("--reuse-factorization", action="store_true",
-                        help="MUMPS factor kept as a GMRES preconditioner across Newton iterations")
+                        help="modified Newton: the last MUMPS factor kept while iterations contract fast")
     parser.add_argument("--collect", nargs="+", metavar=("TABLE", "JSONL"),
                         help="write a Markdown table TABLE from JSON-lines files")
     args = parser.parse_args()

@@ -351,7 +351,7 @@ class FaceFitter:
         steps = 0
         while steps < max_steps and objective > converged_objective:
             steps += 1
-            base_u = self.problem.u.x.array.copy()
+            base_u, base_controls = self.problem.u.x.array.copy(), self.problem.controls.copy()
             if fresh:
                 dofs, marker_columns, seconds = self._columns(state)
                 self._cached_jacobian = (state.copy(), dofs, marker_columns)
@@ -386,8 +386,7 @@ class FaceFitter:
                                                             objective)
                 phases["line_search"] += time.perf_counter() - t0
             if accepted is None:  # no decrease along the step: converged, stuck, or a stale J
-                self.problem.u.x.array[:] = base_u
-                self._equilibrium(state, base_u)
+                self.problem.adopt(base_controls, base_u)
                 if not fresh:
                     fresh = True
                     continue
@@ -429,7 +428,7 @@ class FaceFitter:
                 return math.inf
             value, _ = self._objective(trial, targets, present)
             if value < best[0]:
-                best = (value, trial, self.problem.u.x.array.copy())
+                best = (value, trial, (self.problem.controls.copy(), self.problem.u.x.array.copy()))
             return value
 
         low, high = 0.0, 1.0
@@ -444,11 +443,10 @@ class FaceFitter:
                 low, x1, f1 = x1, x2, f2
                 x2 = low + GOLDEN * (high - low)
                 f2 = evaluate(x2)
-        value, trial, u = best
+        value, trial, equilibrium = best
         if trial is None:
             return None, objective
-        self.problem.u.x.array[:] = u
-        self._equilibrium(trial, u)  # controls and Dirichlet values of the chosen point
+        self.problem.adopt(*equilibrium)
         return trial, value
 
     def _frame_flag(self, present: np.ndarray) -> str:
@@ -494,9 +492,7 @@ class FaceFitter:
         self.previous_activations = (None if checkpoint.previous_activations is None
                                      else checkpoint.previous_activations.copy())
         self.frames_done = checkpoint.frames_done
-        self.problem.u.x.array[:] = checkpoint.displacement
-        # FaceProblem.solve would re-solve; only the controls and their Dirichlet values are wanted.
-        self.problem._set_controls(checkpoint.problem_controls.copy())
+        self.problem.adopt(checkpoint.problem_controls, checkpoint.displacement)
         self._cached_jacobian = None if checkpoint.jacobian_state is None else (
             checkpoint.jacobian_state.copy(), checkpoint.jacobian_dofs.copy(),
             checkpoint.jacobian_markers.copy())

@@ -19,6 +19,7 @@ from petsc4py import PETSc
 import numpy as np
 import ufl
 from dolfinx import fem
+from dolfinx import mesh as dolfinx_mesh
 import dolfinx.fem.petsc as fem_petsc
 
 import forms
@@ -58,6 +59,12 @@ class MuscleSlots:
 def _dg0_cell_dofs(space: fem.FunctionSpace) -> np.ndarray:
     """DG0 dof of every local cell (owned and ghost)."""
     return space.dofmap.list.array.reshape(-1)
+
+
+def _cell_tags(mesh, cells) -> dolfinx_mesh.MeshTagsMetaClass:
+    """Cell tags marking ``cells`` (local indices) with 1."""
+    cells = np.unique(np.asarray(cells, dtype=np.int32))
+    return dolfinx_mesh.meshtags(mesh, mesh.topology.dim, cells, np.ones_like(cells))
 
 
 def peak_stress(model, index: int) -> float:
@@ -120,8 +127,9 @@ class FaceProblem:
         2 for P2; FFCx's own estimate for these forms is far too high.
     petsc_options : PETSc options for the SNES/KSP/PC (prefix ``face_``), e.g.
         {"pc_type": "hypre", "ksp_type": "cg"} to try AMG instead of MUMPS Cholesky.
-    reuse_factorization : keep the last MUMPS factor as a GMRES preconditioner across Newton
-        iterations and solves, refactorising only when GMRES slows down (see solver.py).
+    reuse_factorization : keep the last MUMPS factor as Newton's matrix across iterations and
+        solves (modified Newton), refactorising only when an iteration contracts the residual
+        too little (see solver.py).
     """
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
@@ -145,11 +153,17 @@ class FaceProblem:
         energy = sum(law.strain_energy(F) for law in laws) * dx
         v = ufl.TestFunction(self.V)
         residual = ufl.inner(sum(law.first_piola(F) for law in laws), ufl.grad(v)) * dx
-        # df/da along ``direction``: the same active law with the direction in place of a.
-        active_along_direction = sum(
+        # df/da_i: the active law with a direction in place of a, integrated over muscle i's cells
+        # only (one compiled kernel, one form object per muscle's cells): 32 assemblies over the
+        # whole mesh per Jacobian cost more than the factorisation at 50K tets.
+        active_along_direction = ufl.inner(sum(
             forms.ActiveFiber(f0, w, d).first_piola(F)
-            for w, f0, d in zip(self.slots.weight, self.slots.fiber, self.slots.direction))
-        self._active_residual = compile_form(ufl.inner(active_along_direction, ufl.grad(v)) * dx)
+            for w, f0, d in zip(self.slots.weight, self.slots.fiber, self.slots.direction)), ufl.grad(v))
+        self._active_residuals = [
+            compile_form(active_along_direction * ufl.dx(
+                domain=mesh, subdomain_data=_cell_tags(mesh, muscle.cells), subdomain_id=1,
+                metadata={"quadrature_degree": q}))
+            for muscle in model.muscles]
 
         self.cranium_blocks, self.mandible_blocks = self._bone_dof_blocks()
         self.dof_coordinates = self.V.tabulate_dof_coordinates()[:, :3]
@@ -208,6 +222,14 @@ class FaceProblem:
         on_cranium = cranium.apply(X[self.cranium_blocks])
         on_mandible = cranium.compose(jaw).apply(X[self.mandible_blocks])
         return np.concatenate([on_cranium, on_mandible])
+
+    def adopt(self, controls: Controls, displacement: np.ndarray) -> None:
+        """Take ``displacement`` (local dofs incl. ghosts) as the equilibrium at ``controls``
+        without solving: for a state solved before and kept, e.g. the best point of a line search
+        or a checkpoint. Re-solving it would change it at round-off level, at the price of a
+        factorisation."""
+        self.u.x.array[:] = displacement
+        self._set_controls(controls.copy())
 
     def _set_controls(self, controls: Controls) -> None:
         self._scatter(controls.activations, self.slots.activation)
@@ -280,10 +302,10 @@ class FaceProblem:
         direction[muscle] = 1.0
         self._scatter(direction, self.slots.direction)
         if out is None:
-            out = fem_petsc.create_vector(self._active_residual)
+            out = fem_petsc.create_vector(self._active_residuals[muscle])
         with out.localForm() as local:
             local.set(0.0)
-        fem_petsc.assemble_vector(out, self._active_residual)
+        fem_petsc.assemble_vector(out, self._active_residuals[muscle])
         out.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         out.scale(-1.0)  # force = -d(energy)/dx
         fem_petsc.set_bc(out, self.bcs, scale=0.0)

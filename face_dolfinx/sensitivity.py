@@ -23,7 +23,6 @@ class EquilibriumSensitivity:
         self._solution = problem.u.vector.duplicate()
         self._lift = fem.Function(problem.V)
         self._lift_bc = fem.dirichletbc(self._lift, problem.bone_blocks)
-        self.krylov_iterations = 0
 
     def factor(self) -> None:
         """Assemble and factorise the tangent at the current shape."""
@@ -33,10 +32,12 @@ class EquilibriumSensitivity:
         """K^-1 b_j for j < count, ``fill_rhs(j)`` putting b_j into ``self._rhs``: (count, local dofs
         incl. ghosts). With a direct factor, all right-hand sides go to MUMPS as one dense block
         (20K face, 32 muscles: 0.13 s against 1.0 s one by one); otherwise one Krylov solve each."""
+        if not self.solver.factor_is_current:
+            # An old factor (factorisation reuse) would give the sensitivities of an older state.
+            raise RuntimeError("the tangent at the current equilibrium is not set up: call factor() first")
         owned = self._rhs.getLocalSize()
         pc = self.solver.snes.getKSP().getPC()
-        # An old factor (factorisation reuse) is only a preconditioner: then Krylov solves.
-        block = pc.getType() in ("cholesky", "lu") and count > 1 and self.solver.factor_is_current
+        block = pc.getType() in ("cholesky", "lu") and count > 1
         if block:
             rhs = PETSc.Mat().createDense([(owned, self._rhs.getSize()), (None, count)],
                                           comm=self.problem.comm)
@@ -48,7 +49,7 @@ class EquilibriumSensitivity:
             if block:
                 values[:, j] = self._rhs.array_r
             else:
-                self.krylov_iterations += self.solver.solve_tangent(self._rhs, self._solution)
+                self.solver.solve_tangent(self._rhs, self._solution)
                 columns.append(self._with_ghosts(self._solution.array_r))
         if not block:
             return np.array(columns).reshape(count, -1)

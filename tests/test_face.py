@@ -132,3 +132,31 @@ def test_factorisation_reuse_gives_the_same_equilibrium_with_fewer_factorisation
     reused_factorizations, _ = counts[1]
     assert fresh_factorizations == fresh_newton  # one per Newton iteration
     assert reused_factorizations < fresh_factorizations / 2
+
+
+def test_newton_from_an_equilibrium_stops_on_the_step_tolerance(model):
+    """A residual tolerance below the round-off floor can never be met; Newton started at a
+    converged state then stops once its correction is below the step tolerance instead of
+    stalling to the iteration limit (which raised mid-take when a line search's best point was
+    re-solved)."""
+    problem = FaceProblem(model, petsc_options=dict(snes_atol=1e-30, snes_rtol=1e-30))
+    expression = dict(model.expressions["smile"])
+    expression.pop("jaw_opening_deg", None)
+    assert problem.solve(activations=expression).converged
+    converged, iterations, reason = problem.solver.newton()
+    assert converged and iterations <= 2 and "SNORM" in reason
+
+
+def test_adopt_takes_a_solved_state_without_solving(model):
+    problem = FaceProblem(model)
+    expression = dict(model.expressions["smile"])
+    expression.pop("jaw_opening_deg", None)
+    problem.solve(activations=expression)
+    smile, controls = problem.u.x.array.copy(), problem.controls.copy()
+    problem.solve(activations=np.zeros(problem.num_muscles))
+    factorizations = problem.solver.factorizations
+    problem.adopt(controls, smile)
+    assert problem.solver.factorizations == factorizations
+    assert np.array_equal(problem.u.x.array, smile)
+    assert np.array_equal(problem.controls.activations, controls.activations)
+    assert problem.residual_norm() < 1e-6  # the smile's own activations are back in the forms
