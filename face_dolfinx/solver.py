@@ -177,6 +177,8 @@ class QuasistaticSolver:
         self._factor_is_current = False  # the factor belongs to the tangent at the unknown
         self._has_factor = False         # some tangent has been factorised (reuse mode keeps it)
         self._refreshed_in_solve = False
+        self._fresh_factor_in_iteration = True
+        self._step_was_cut = False
         self.bcs = bcs
         self.comm = unknown.function_space.mesh.comm
         self.residual_form = compile_form(residual)
@@ -255,7 +257,11 @@ class QuasistaticSolver:
         with self._guard_x.localForm() as x_local, self._guard_step.localForm() as step_local:
             fraction = self.inversion_guard.step_fraction(
                 x_local.array_r, step_local.array_r, GUARDED_MAX_LAMBDA) / GUARDED_MAX_LAMBDA
-        self._guard_cuts = self._guard_cuts + 1 if fraction < STALLED_GUARD_FRACTION else 0
+        # A step from an old factor that had to be cut says the factor is stale, not that Newton
+        # stalls: the next iteration refactorises instead.
+        self._step_was_cut = fraction < 1.0
+        if self._fresh_factor_in_iteration:
+            self._guard_cuts = self._guard_cuts + 1 if fraction < STALLED_GUARD_FRACTION else 0
         if fraction < 1.0:
             step.scale(fraction)
             return True
@@ -281,7 +287,7 @@ class QuasistaticSolver:
         rtol, atol, stol, max_it = snes.getTolerances()
         reasons = PETSc.SNES.ConvergedReason
         if iteration == 0:
-            self._guard_cuts, self._initial_fnorm = 0, fnorm
+            self._guard_cuts, self._initial_fnorm, self._step_was_cut = 0, fnorm, False
             self._correction_size, self._contraction = math.inf, 0.0
         else:
             self._contraction = fnorm / max(self._last_fnorm, 1e-300)
@@ -307,8 +313,9 @@ class QuasistaticSolver:
 
     def _assemble_tangent(self, snes, x, A, P):
         self._factor_is_current = False  # the Newton step moves the unknown away from it
-        keep = (self.reuse_factorization and self._has_factor
+        keep = (self.reuse_factorization and self._has_factor and not self._step_was_cut
                 and (snes.getIterationNumber() == 0 or self._contraction <= REFRESH_CONTRACTION))
+        self._fresh_factor_in_iteration = not keep
         if keep:
             return  # A is untouched, so the PC keeps its factor: a modified Newton iteration
         self._assemble_tangent_matrix(A)
