@@ -3,9 +3,11 @@
 Synthesises a speech-like take (60 Hz, 0.5 mm noise, head motion) once at the given resolution,
 then fits the same stretch of it with each ``--variants`` entry, one fresh problem each:
 
-  fresh   Newton assembles and factorises the tangent at every iteration (the plain loop)
-  reuse   modified Newton: the last factor (of the sensitivities or of an earlier iteration) is
-          kept while each iteration cuts the residual at least 4-fold (``reuse_factorization``)
+  fresh     Newton assembles and factorises the tangent at every iteration (the plain loop)
+  reuse     modified Newton: the last factor (of the sensitivities or of an earlier iteration) is
+            kept while each iteration cuts the residual at least 4-fold (``reuse_factorization``)
+  reuse-1j  reuse, and one fresh Jacobian per warm frame (``max_fresh_jacobians=1``): the first
+            Gauss-Newton step reuses the last frame's, the third the second's
 
 Per frame one JSON line (phases: sensitivities = factorisation and the dX/dc solves, gn_solve =
 the small least-squares step, equilibrium = the solve at the full step, line_search =
@@ -27,7 +29,11 @@ import time
 from mpi4py import MPI
 import numpy as np
 
-VARIANTS = {"fresh": dict(reuse_factorization=False), "reuse": dict(reuse_factorization=True)}
+VARIANTS = {  # name: (FaceProblem keywords, FitSettings fields)
+    "fresh": (dict(reuse_factorization=False), {}),
+    "reuse": (dict(reuse_factorization=True), {}),
+    "reuse-1j": (dict(reuse_factorization=True), dict(max_fresh_jacobians=1)),
+}
 PHASES = ("sensitivities", "gn_solve", "equilibrium", "line_search")
 
 
@@ -35,9 +41,10 @@ def fit_variant(name, model, sites, capture, truth, args, comm) -> dict:
     from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet, track
     from face_dolfinx.problem import FaceProblem
 
-    problem = FaceProblem(model, **VARIANTS[name])
+    problem_options, settings = VARIANTS[name]
+    problem = FaceProblem(model, **problem_options)
     fitter = FaceFitter(problem, MarkerSet(problem, sites),
-                        FitSettings(mode=args.mode, max_gn_steps=args.gn_steps))
+                        FitSettings(mode=args.mode, max_gn_steps=args.gn_steps, **settings))
     rows = []
     factorizations = [0]
 

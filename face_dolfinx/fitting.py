@@ -52,6 +52,9 @@ class FitSettings:
     fit_jaw: bool = True
     unreachable_rms: float = 3.0        # mm: a frame fitted worse than this is flagged
     reuse_jacobian: bool = True         # first step of a frame: the last frame's J, turned with the head
+    # Fresh Jacobians per frame after that first step (None: one per step); later steps reuse the
+    # newest, turned with the head. A stale J whose step fails is always replaced.
+    max_fresh_jacobians: int | None = None
     # Exact mode: trust region on the activation step (max |da|), adapted within a frame by how
     # well the linear prediction matched (doubles on agreement, halves otherwise). Noise in
     # poorly identified muscle combinations otherwise moves activations by 0.5 in one step, and
@@ -347,6 +350,7 @@ class FaceFitter:
         objective, simulated = self._objective(state, targets, present)
         initial_rms = float(np.sqrt(np.mean(np.sum((simulated - targets)[present] ** 2, axis=1))))
         fresh = not (settings.reuse_jacobian and self._cached_jacobian is not None)
+        fresh_jacobians = 0
         converged_objective = settings.marker_tolerance**2 * max(1, int(present.sum()))
         steps = 0
         while steps < max_steps and objective > converged_objective:
@@ -355,6 +359,7 @@ class FaceFitter:
             if fresh:
                 dofs, marker_columns, seconds = self._columns(state)
                 self._cached_jacobian = (state.copy(), dofs, marker_columns)
+                fresh_jacobians += 1
             else:
                 dofs, marker_columns, seconds = self._reused_columns(state)
             phases["sensitivities"] += seconds
@@ -392,7 +397,9 @@ class FaceFitter:
                     continue
                 break
             decrease = (objective - new_objective) / max(objective, 1e-300)
-            state, objective, fresh = accepted, new_objective, True
+            state, objective = accepted, new_objective
+            limit = settings.max_fresh_jacobians if self.frames_done else None  # not from rest
+            fresh = limit is None or fresh_jacobians < limit
             if decrease < settings.relative_decrease or np.linalg.norm(step) < settings.min_step:
                 break
         self.state = state

@@ -27,8 +27,8 @@ user can override any of them from the command line.
 """
 from dataclasses import dataclass
 import logging
-import time
 import math
+import time
 from typing import Callable
 
 from mpi4py import MPI
