@@ -237,11 +237,14 @@ def fit(model, args) -> None:
     capture = placement.aligned(capture)
     truth_file = pathlib.Path(args.truth) if args.truth else truth_path(capture_path)
     truth = load_truth(truth_file) if truth_file.exists() else None
+    if args.fresh_jacobians is not None and args.fresh_jacobians < 0:
+        raise SystemExit(f"--fresh-jacobians {args.fresh_jacobians}: give 0 or more fresh Jacobians per frame")
     settings = FitSettings(mode=args.mode, max_gn_steps=args.gn_steps,
-                           temporal_smoothness=args.smoothness)
+                           temporal_smoothness=args.smoothness, max_fresh_jacobians=args.fresh_jacobians)
     run = dict(capture=str(capture_path.resolve()), model=str(model.path), mode=args.mode,
                gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames,
-               chunks=args.chunks, reuse_factorization=args.reuse_factorization)
+               chunks=args.chunks, reuse_factorization=args.reuse_factorization,
+               fresh_jacobians=args.fresh_jacobians)
     run.update(alignment=placement.method, neutral_frame=placement.neutral_frame,
                correspondence=str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None)
     alignment_record = json.dumps(placement.to_json(), indent=2)
@@ -498,6 +501,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "frames, refactorising only when an iteration cuts the residual less than "
                         "4-fold (faster on large meshes; a resumed run then matches an uninterrupted "
                         "one to solver tolerance, not bit for bit)")
+    p.add_argument("--fresh-jacobians", type=int, metavar="N",
+                   help="fresh Jacobians per warm frame after its first Gauss-Newton step, which "
+                        "reuses the last frame's (default: one per step; 1 with "
+                        "--reuse-factorization is the fast setting of docs/performance.md)")
     p.add_argument("--chunks", type=int, default=1,
                    help="split the take into independent chunks (each starts from rest); under "
                         "mpirun the ranks share them out")
