@@ -47,6 +47,7 @@ class FitSettings:
     marker_tolerance: float = 1e-4      # mm: stop when the marker RMS error is below this
     trial_halvings: int = 3             # continuation budget of a trial point; beyond: rejected
     line_search_depth: int = 6          # golden-section evaluations when the full step fails
+    line_search: bool = True            # False: pure Gauss-Newton, every full step taken (stability study)
     temporal_smoothness: float = 0.0    # weight (mm^2 per unit activation^2) towards the last frame
     fit_head: bool = True
     fit_jaw: bool = True
@@ -383,7 +384,7 @@ class FaceFitter:
             if state.mode == "exact":
                 predicted = np.sum(residual**2) - np.sum((residual + np.tensordot(step, jac, axes=1))**2)
                 self._adapt_trust_radius(step, objective - candidate_objective, predicted)
-            if candidate_objective < objective:
+            if candidate_objective < objective or (not settings.line_search and math.isfinite(candidate_objective)):
                 accepted, new_objective = candidate, candidate_objective
             else:
                 t0 = time.perf_counter()
@@ -400,7 +401,7 @@ class FaceFitter:
             state, objective = accepted, new_objective
             limit = settings.max_fresh_jacobians if self.frames_done else None  # not from rest
             fresh = limit is None or fresh_jacobians < limit
-            if decrease < settings.relative_decrease or np.linalg.norm(step) < settings.min_step:
+            if abs(decrease) < settings.relative_decrease or np.linalg.norm(step) < settings.min_step:
                 break
         self.state = state
         self.previous_activations = state.activations.copy()
@@ -422,6 +423,8 @@ class FaceFitter:
 
     def _line_search(self, state, candidate, base_u, targets, present, objective):
         """Golden-section search for t in (0, 1) along the step; None if nothing improves."""
+        if not self.settings.line_search:  # pure Gauss-Newton: a full step without equilibrium ends the frame
+            return None, objective
         candidate_u = self.problem.u.x.array.copy()
         best = (objective, None, None)
 

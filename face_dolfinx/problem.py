@@ -130,10 +130,14 @@ class FaceProblem:
     reuse_factorization : keep the last MUMPS factor as Newton's matrix across iterations and
         solves (modified Newton), refactorising only when an iteration contracts the residual
         too little (see solver.py).
+    inversion_guard : shorten Newton steps that would flatten a cell (``solver.InversionGuard``);
+        off only to measure what the guard buys (``benchmarks/stability.py``; solves without a
+        ``guess``, which the guard pulls back).
     """
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
-                 petsc_options: dict | None = None, reuse_factorization: bool = False):
+                 petsc_options: dict | None = None, reuse_factorization: bool = False,
+                 inversion_guard: bool = True):
         self.model = model
         mesh = self.mesh = model.mesh
         self.comm = mesh.comm
@@ -172,7 +176,7 @@ class FaceProblem:
         self.bcs = [fem.dirichletbc(self.bone_displacement, self.bone_blocks)]
         self.solver = QuasistaticSolver(residual, self.u, self.bcs, energy=energy,
                                         petsc_options=petsc_options,
-                                        inversion_guard=InversionGuard(self.V),
+                                        inversion_guard=InversionGuard(self.V) if inversion_guard else None,
                                         reuse_factorization=reuse_factorization)
         self.controls = Controls(np.zeros(self.num_muscles), AffineMap(), AffineMap())
         self._set_controls(self.controls)
