@@ -358,12 +358,14 @@ def collect(paths) -> str:
     return "\n".join(lines)
 
 
-def pareto_front(points: np.ndarray) -> np.ndarray:
-    """Indices of the points (time, error) that no other point beats in both, by time."""
+def pareto_front(points: np.ndarray, tolerance: float = 1e-3) -> np.ndarray:
+    """Indices of the points (time, error) that no other point beats in both, by time. A slower
+    point must lower the error by more than ``tolerance`` (relative) to count: settings that
+    converge to the same fit differ only by round-off."""
     order = np.lexsort((points[:, 1], points[:, 0]))
     front, best = [], math.inf
     for i in order:
-        if points[i, 1] < best:
+        if points[i, 1] < best * (1.0 - tolerance):
             front.append(i)
             best = points[i, 1]
     return np.array(front, dtype=int)
