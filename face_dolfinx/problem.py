@@ -234,6 +234,7 @@ class FaceProblem:
         factorisation."""
         self.u.x.array[:] = displacement
         self._set_controls(controls.copy())
+        self.solver.unknown_replaced()
 
     def _set_controls(self, controls: Controls) -> None:
         self._scatter(controls.activations, self.slots.activation)

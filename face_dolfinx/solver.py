@@ -337,6 +337,10 @@ class QuasistaticSolver:
         tangent at the unknown."""
         return self._factor_is_current
 
+    def unknown_replaced(self) -> None:
+        """The owner set the unknown by hand: the factor no longer belongs to its tangent."""
+        self._factor_is_current = False
+
     def factorize(self) -> None:
         """Assemble and factorise the tangent at the unknown (for sensitivities; in reuse mode
         the factor then also serves the next Newton solves)."""
