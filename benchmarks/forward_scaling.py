@@ -26,9 +26,10 @@ def peak_memory_gb(comm) -> float:
 
 
 def run_resolution(target_tets: int, expressions: list[str], degree: int,
-                   reuse_factorization: bool = False) -> dict:
+                   reuse_factorization: bool = False, coarse_tets: int | None = None) -> dict:
     from face_dolfinx.anatomy import build_builtin_face
     from face_dolfinx.bones import AffineMap, jaw_pose
+    from face_dolfinx.coarse import CoarseStart
     from face_dolfinx.model import load_model
     from face_dolfinx.problem import FaceProblem
 
@@ -41,22 +42,27 @@ def run_resolution(target_tets: int, expressions: list[str], degree: int,
     t_load = time.perf_counter() - t0
     t0 = time.perf_counter()
     problem = FaceProblem(model, degree=degree, reuse_factorization=reuse_factorization)
+    start = None
+    if coarse_tets:
+        coarse = FaceProblem(load_model(build_builtin_face(target_tets=coarse_tets), comm))
+        start = CoarseStart(coarse, problem)
     t_setup = time.perf_counter() - t0
     row = dict(target_tets=target_tets, tets=model.mesh.topology.index_map(3).size_global,
                dofs=3 * problem.V.dofmap.index_map.size_global, ranks=comm.size, degree=degree,
-               reuse_factorization=reuse_factorization,
+               reuse_factorization=reuse_factorization, coarse_tets=coarse_tets,
                build_s=round(t_build, 2), load_s=round(t_load, 2), setup_s=round(t_setup, 2),
                solves={})
     for name in expressions:
         spec = dict(model.expressions[name])
         opening = math.radians(spec.pop("jaw_opening_deg", 0.0))
         jaw = jaw_pose(model.jaw, opening) if opening else AffineMap()
-        problem.u.x.array[:] = 0.0
-        problem.solve(activations=np.zeros(problem.num_muscles), jaw=AffineMap())
+        for rested in (problem, start.coarse) if start else (problem,):
+            rested.u.x.array[:] = 0.0
+            rested.solve(activations=np.zeros(problem.num_muscles), jaw=AffineMap())
         comm.barrier()
         t0 = time.perf_counter()
         factorizations = problem.solver.factorizations
-        report = problem.solve(activations=spec, jaw=jaw)
+        report = (start or problem).solve(activations=spec, jaw=jaw)
         comm.barrier()
         row["solves"][name] = dict(seconds=round(time.perf_counter() - t0, 2),
                                    newton=report.newton_iterations, load_steps=report.load_steps,
@@ -65,14 +71,15 @@ def run_resolution(target_tets: int, expressions: list[str], degree: int,
     return row
 
 
-TABLE_HEADER = ("| tets | dofs | ranks | factor reuse | build s | setup s | expression | solve s | "
-                "Newton its | factorisations | load steps | peak memory GB |\n"
-                "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+TABLE_HEADER = ("| tets | dofs | ranks | factor reuse | coarse start | build s | setup s | expression | "
+                "solve s | Newton its | factorisations | load steps | peak memory GB |\n"
+                "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
 
 
 def markdown_rows(row: dict) -> str:
     return "".join(
         f"| {row['tets']} | {row['dofs']} | {row['ranks']} | {'yes' if row.get('reuse_factorization') else 'no'} | "
+        f"{row.get('coarse_tets') or 'no'} | "
         f"{row['build_s']} | {row['setup_s']} | {name} | {s['seconds']} | {s['newton']} | "
         f"{s.get('factorizations', s['newton'])} | {s['load_steps']} | {row['peak_memory_gb']} |\n"
         for name, s in row["solves"].items())
@@ -85,17 +92,21 @@ def main():
     parser.add_argument("--degree", type=int, default=1)
     parser.add_argument("--reuse-factorization", action="store_true",
                         help="modified Newton: the last MUMPS factor kept while iterations contract fast")
+    parser.add_argument("--coarse", type=int, metavar="TETS",
+                        help="start every fine solve from the equilibrium of the built-in face at TETS "
+                             "(face_dolfinx.coarse; Newton counts and factorisations are the fine model's)")
     parser.add_argument("--collect", nargs="+", metavar=("TABLE", "JSONL"),
                         help="write a Markdown table TABLE from JSON-lines files")
     args = parser.parse_args()
     if args.collect:
         table, *sources = args.collect
         rows = [json.loads(line) for src in sources for line in pathlib.Path(src).read_text().splitlines() if line]
-        rows.sort(key=lambda r: (r["tets"], r["ranks"], r.get("reuse_factorization", False)))
+        rows.sort(key=lambda r: (r["tets"], r["ranks"], r.get("reuse_factorization", False),
+                                 r.get("coarse_tets") or 0))
         pathlib.Path(table).write_text(TABLE_HEADER + "".join(markdown_rows(r) for r in rows))
         return
     for target in args.tets:
-        row = run_resolution(target, args.expressions, args.degree, args.reuse_factorization)
+        row = run_resolution(target, args.expressions, args.degree, args.reuse_factorization, args.coarse)
         if MPI.COMM_WORLD.rank == 0:
             print(json.dumps(row), flush=True)
 

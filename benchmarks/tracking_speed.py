@@ -8,6 +8,8 @@ then fits the same stretch of it with each ``--variants`` entry, one fresh probl
             kept while each iteration cuts the residual at least 4-fold (``reuse_factorization``)
   reuse-1j  reuse, and one fresh Jacobian per warm frame (``max_fresh_jacobians=1``): the first
             Gauss-Newton step reuses the last frame's, the third the second's
+  naive     fresh, and the paper's golden-section line search on every Gauss-Newton step (the
+            full step one of its candidates), not only when the full step fails
 
 Per frame one JSON line (phases: sensitivities = factorisation and the dX/dc solves, gn_solve =
 the small least-squares step, equilibrium = the solve at the full step, line_search =
@@ -33,6 +35,7 @@ VARIANTS = {  # name: (FaceProblem keywords, FitSettings fields)
     "fresh": (dict(reuse_factorization=False), {}),
     "reuse": (dict(reuse_factorization=True), {}),
     "reuse-1j": (dict(reuse_factorization=True), dict(max_fresh_jacobians=1)),
+    "naive": (dict(reuse_factorization=False), dict(line_search_every_step=True)),
 }
 PHASES = ("sensitivities", "gn_solve", "equilibrium", "line_search")
 

@@ -8,6 +8,7 @@ the opening rotation about the condyle axis.
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 
 
 @dataclass(frozen=True)
@@ -33,9 +34,31 @@ class AffineMap:
         return AffineMap(inv, -inv @ self.translation)
 
     def interpolate(self, other: "AffineMap", t: float) -> "AffineMap":
-        """Linear blend of the 12 numbers, as the paper's line search and our continuation use."""
+        """Linear blend of the 12 numbers, as the paper's line search uses."""
         return AffineMap((1 - t) * self.matrix + t * other.matrix,
                          (1 - t) * self.translation + t * other.translation)
+
+    def homogeneous(self) -> np.ndarray:
+        H = np.eye(4)
+        H[:3, :3], H[:3, 3] = self.matrix, self.translation
+        return H
+
+    def geodesic(self, other: "AffineMap", t: float) -> "AffineMap":
+        """exp(t log(other o self^-1)) o self: the motion from self to other done a fraction t of
+        the way. A rotation about an axis turns by t times its angle about the same axis (a screw
+        motion), so rigid frames stay rigid; the linear blend of the 12 numbers instead scales a
+        frame by cos(theta/2) half way through a turn by theta. Falls back to the linear blend
+        where the relative map has no real logarithm (a half turn, a reflection)."""
+        if t == 0.0:
+            return self
+        if t == 1.0:
+            return other
+        relative = other.homogeneous() @ np.linalg.inv(self.homogeneous())
+        log = scipy.linalg.logm(relative)
+        if np.abs(np.imag(log)).max(initial=0.0) > 1e-9 or not np.all(np.isfinite(log)):
+            return self.interpolate(other, t)
+        H = scipy.linalg.expm(t * np.real(log)) @ self.homogeneous()
+        return AffineMap(H[:3, :3], H[:3, 3])
 
 
 def rotation(axis: np.ndarray, angle: float) -> np.ndarray:

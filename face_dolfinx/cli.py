@@ -70,6 +70,19 @@ def _model_from_args(args):
     return load_model(path, MPI.COMM_WORLD)
 
 
+def _coarse_model(args):
+    """The model named by ``--coarse``: a number is a built-in face resolution, else a folder."""
+    if not args.coarse:
+        return None
+    from .anatomy import build_builtin_face
+    from .model import load_model
+    if args.coarse.isdigit():
+        if args.model:
+            raise SystemExit("--coarse TETS builds the built-in face; with --model give a coarse model folder")
+        return load_model(build_builtin_face(target_tets=int(args.coarse)), MPI.COMM_WORLD)
+    return load_model(pathlib.Path(args.coarse), MPI.COMM_WORLD)
+
+
 def _expression_controls(model, name: str):
     """Activations (dict) and jaw frame of a named expression stored in the model."""
     from .bones import AffineMap, jaw_pose
@@ -83,8 +96,11 @@ def _expression_controls(model, name: str):
 
 
 def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 1,
-             overwrite: bool = False, render: bool = True) -> list[dict]:
-    """Solve each expression from the previous equilibrium and write one result folder."""
+             overwrite: bool = False, render: bool = True, coarse_model=None) -> list[dict]:
+    """Solve each expression from the previous equilibrium and write one result folder. With a
+    ``coarse_model`` of the same face, each solve starts from the coarse model's equilibrium
+    (``face_dolfinx.coarse``)."""
+    from .coarse import CoarseStart
     from .output import FaceWriter, atomic_directory
     from .problem import FaceProblem
     comm = MPI.COMM_WORLD
@@ -92,6 +108,11 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
         _expression_controls(model, name)
     start = time.perf_counter()
     problem = FaceProblem(model, degree=degree)
+    solver = problem
+    if coarse_model is not None:
+        solver = CoarseStart(FaceProblem(coarse_model), problem)
+        log.info("coarse start from %s (%d tets)", coarse_model.path,
+                 coarse_model.mesh.topology.index_map(3).size_global)
     log.info("model %s: %d tets, %d muscles, %d dofs, %d muscle slots per cell; set-up %.1f s",
              model.name, model.mesh.topology.index_map(3).size_global, problem.num_muscles,
              problem.V.dofmap.index_map.size_global * 3, len(problem.slots.weight),
@@ -102,7 +123,7 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
             writer.write(0.0)
             for step, name in enumerate(expressions, start=1):
                 activations, jaw = _expression_controls(model, name)
-                report = problem.solve(activations=activations, jaw=jaw)
+                report = solver.solve(activations=activations, jaw=jaw)
                 displacement = comm.allreduce(np.abs(problem.u.x.array).max() if problem.u.x.array.size else 0.0,
                                               op=MPI.MAX)
                 row = dict(expression=name, newton_iterations=report.newton_iterations,
@@ -116,7 +137,9 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
                     _render_expression(problem, staging / f"{step:02d}_{name}.png", name)
         if comm.rank == 0:
             (staging / "summary.json").write_text(json.dumps(
-                dict(model=str(model.path), expressions=rows, ranks=comm.size), indent=2))
+                dict(model=str(model.path), expressions=rows, ranks=comm.size,
+                     coarse_model=str(coarse_model.path) if coarse_model is not None else None),
+                indent=2))
     return rows
 
 
@@ -442,6 +465,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--out", default="results/simulate", help="result folder")
     p.add_argument("--overwrite", action="store_true", help="replace an existing result folder")
     p.add_argument("--no-render", action="store_true", help="skip the PNG renders")
+    p.add_argument("--coarse", metavar="TETS|FOLDER",
+                   help="start each solve from the equilibrium of a coarse model of the same face: "
+                        "the built-in face at TETS tets, or a model folder (docs/performance.md: "
+                        "15 degree jaw opening at 404K tets 5x faster from the 50K face)")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     p = sub.add_parser("demo", help="the main job: build the face, synthesise a take, fit it",
@@ -573,7 +600,7 @@ def _main(argv=None) -> int:
         return 0
     out = pathlib.Path(args.out)
     rows = simulate(model, args.expressions, out, degree=args.degree, overwrite=args.overwrite,
-                    render=not args.no_render)
+                    render=not args.no_render, coarse_model=_coarse_model(args))
     if MPI.COMM_WORLD.rank == 0:
         print(f"results: {out.resolve()} ({len(rows)} expressions; face.xdmf for ParaView, PNG renders)")
     return 0

@@ -45,9 +45,10 @@ class FitSettings:
     relative_decrease: float = 1e-3     # stop when the objective drops by less than this
     min_step: float = 1e-5              # stop when the control step is smaller than this
     marker_tolerance: float = 1e-4      # mm: stop when the marker RMS error is below this
-    trial_halvings: int = 3             # continuation budget of a trial point; beyond: rejected
+    trial_halvings: int = 3             # a trial point whose continuation needs steps under 2^-3 is rejected
     line_search_depth: int = 6          # golden-section evaluations when the full step fails
     line_search: bool = True            # False: pure Gauss-Newton, every full step taken (stability study)
+    line_search_every_step: bool = False  # the paper's loop: golden section on every step, the full step one candidate
     temporal_smoothness: float = 0.0    # weight (mm^2 per unit activation^2) towards the last frame
     fit_head: bool = True
     fit_jaw: bool = True
@@ -384,12 +385,14 @@ class FaceFitter:
             if state.mode == "exact":
                 predicted = np.sum(residual**2) - np.sum((residual + np.tensordot(step, jac, axes=1))**2)
                 self._adapt_trust_radius(step, objective - candidate_objective, predicted)
-            if candidate_objective < objective or (not settings.line_search and math.isfinite(candidate_objective)):
+            full_step_good = candidate_objective < objective or (
+                not settings.line_search and math.isfinite(candidate_objective))
+            if full_step_good and not (settings.line_search and settings.line_search_every_step):
                 accepted, new_objective = candidate, candidate_objective
             else:
                 t0 = time.perf_counter()
                 accepted, new_objective = self._line_search(state, candidate, base_u, targets, present,
-                                                            objective)
+                                                            objective, candidate_objective)
                 phases["line_search"] += time.perf_counter() - t0
             if accepted is None:  # no decrease along the step: converged, stuck, or a stale J
                 self.problem.adopt(base_controls, base_u)
@@ -421,12 +424,16 @@ class FaceFitter:
         elif agreement < 0.25:
             self.trust_radius = max(0.5 * self.trust_radius, MIN_TRUST_RADIUS)
 
-    def _line_search(self, state, candidate, base_u, targets, present, objective):
-        """Golden-section search for t in (0, 1) along the step; None if nothing improves."""
+    def _line_search(self, state, candidate, base_u, targets, present, objective,
+                     candidate_objective=math.inf):
+        """Golden-section search for t in (0, 1) along the step, the full step (at the problem's
+        current equilibrium, objective ``candidate_objective``) competing; None if nothing improves."""
         if not self.settings.line_search:  # pure Gauss-Newton: a full step without equilibrium ends the frame
             return None, objective
         candidate_u = self.problem.u.x.array.copy()
         best = (objective, None, None)
+        if candidate_objective < objective:
+            best = (candidate_objective, candidate, (self.problem.controls.copy(), candidate_u))
 
         def evaluate(t):
             nonlocal best

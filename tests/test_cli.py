@@ -30,6 +30,21 @@ def test_simulate_writes_a_complete_result(builtin_model_path, shared_tmp):
     assert json.loads((out / "summary.json").read_text())["expressions"][0]["expression"] == "frown"
 
 
+def test_simulate_from_a_coarse_model(builtin_model_path, shared_tmp):
+    """The plumbing of --coarse: with the model as its own coarse model the start is the
+    equilibrium itself, so the fine Newton has (almost) nothing left to do."""
+    out = shared_tmp / "coarse"
+    assert main(["simulate", "smile", "--model", str(builtin_model_path), "--coarse",
+                 str(builtin_model_path), "--out", str(out), "--no-render"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["coarse_model"] == str(builtin_model_path)
+    assert summary["expressions"][0]["newton_iterations"] <= 1
+    assert summary["expressions"][0]["max_displacement_mm"] > 1.0
+    with pytest.raises(SystemExit, match="--coarse TETS builds the built-in face"):
+        main(["simulate", "smile", "--model", str(builtin_model_path), "--coarse", "5000",
+              "--out", str(shared_tmp / "never"), "--no-render"])
+
+
 def test_failed_run_leaves_nothing_that_looks_like_a_result(builtin_model_path, shared_tmp):
     out = shared_tmp / "broken"
     with pytest.raises(SystemExit, match="unknown expression 'grin'"):

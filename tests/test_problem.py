@@ -164,3 +164,45 @@ def test_distributed_solution_matches_serial():
     norm_world = world.u.vector.norm()
     norm_alone = alone.u.vector.norm()
     assert norm_world == pytest.approx(norm_alone, rel=1e-8)
+
+
+def test_bone_frames_are_interpolated_along_their_motion():
+    """Continuation half way through a turn: the frame has turned by half the angle about the
+    same axis and is still rigid (the linear blend of the 12 numbers shrinks it by cos(theta/2))."""
+    axis, centre = np.array([0.3, 1.0, -0.2]), np.array([40.0, 10.0, 5.0])
+    shift = 1.5 * axis  # a screw: turn about an axis through centre and slide along it
+    start = rigid_map(rotation(axis, 0.2), centre, [0, 0, 0])
+    end = rigid_map(rotation(axis, 1.4), centre, shift)
+    half = start.geodesic(end, 0.5)
+    assert np.allclose(half.matrix, rotation(axis, 0.8), atol=1e-12)
+    assert np.allclose(half.apply(centre), centre + 0.5 * shift, atol=1e-10)
+    blended = start.interpolate(end, 0.5)
+    assert abs(np.linalg.svd(blended.matrix, compute_uv=False).min() - np.cos(0.6)) < 1e-12
+    assert start.geodesic(end, 0.0) is start and start.geodesic(end, 1.0) is end
+
+
+def test_continuation_gives_up_only_when_its_step_is_too_small():
+    """A walk that needs steps of at most 0.3 of the way fails at steps 1 and 0.5 again and again
+    but gets there with max_halvings = 2 (steps down to 0.25); with max_halvings = 1 it stops at
+    the last equilibrium and says how far it got."""
+    from face_dolfinx.solver import EquilibriumError
+
+    p = FaceProblem(slab_model())
+    reached = {"t": 0.0, "load": 0.0}
+
+    def set_controls(t):
+        reached["load"] = t
+
+    def newton():
+        ok = reached["load"] - reached["t"] <= 0.3
+        if ok:
+            reached["t"] = reached["load"]
+        return ok, 1, "converged" if ok else "DIVERGED_LINE_SEARCH (-6)"
+
+    p.solver.newton = newton
+    report = p.solver.solve_continuation(set_controls, max_halvings=2)
+    assert report.converged and reached["t"] == 1.0 and report.load_steps == 4
+    reached.update(t=0.0, load=0.0)
+    with pytest.raises(EquilibriumError, match="beyond 0.0000 .* step of 0.5 of the way failed"):
+        p.solver.solve_continuation(set_controls, max_halvings=1)
+    assert reached["load"] == 0.0
