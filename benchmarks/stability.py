@@ -38,7 +38,9 @@ crash of the script.
            face) fitted after damage of growing severity in every frame: outlier markers (how
            many jump 10 mm; how far one marker jumps), gaps (fraction of markers missing), noise.
            Recorded per take: marker RMS against the clean truth (all markers and the undamaged
-           ones), the error at the damaged markers, activation error, flagged frames, failures.
+           ones), the error at the damaged markers, activation error, flagged frames (and the
+           controls named under-determined, with each frame's observability), failures.
+           --damage-families picks takes (e.g. ``clean gaps``).
 
 One JSON line per run goes to --out (appended; in the tables a later row of the same run replaces
 an earlier one, so a study or method can be rerun alone). ``--collect`` prints the Markdown tables
@@ -440,6 +442,8 @@ def damage_study(model, args, write) -> None:
     del truth_problem
     clean = truth.clean_positions
     for family, level, positions, damaged in damaged_takes(clean, args.seed):
+        if family not in args.damage_families:
+            continue
         problem = FaceProblem(model)
         markers = MarkerSet(problem, sites)
         fitter = FaceFitter(problem, markers)
@@ -476,6 +480,9 @@ def damage_study(model, args, write) -> None:
                    line_search_seconds=float(sum(r.phases.get("line_search", 0.0) for r in results)),
                    flagged=sum(1 for r in results if r.flag),
                    flags=sorted({r.flag.split(":")[0] for r in results if r.flag}),
+                   observability=[r.observability for r in results],
+                   unobservable={name: sum(name in r.unobservable for r in results)
+                                 for name in sorted({n for r in results for n in r.unobservable})},
                    seconds_per_frame=float(np.mean([r.seconds for r in results])) if results else math.nan))
 
 
@@ -702,8 +709,9 @@ def damage_tables(rows) -> list[str]:
              "against the clean truth (mm; RMS over frames and markers; the damaged markers: mean "
              "distance), activation errors over frames and muscles:", "",
              "| damage | level | markers RMS | undamaged markers RMS | damaged markers mean | activation "
-             "RMS | activation max | jaw opening err deg | flagged frames | failure |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "RMS | activation max | jaw opening err deg | flagged frames | named under-determined (frames) "
+             "| failure |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for (family, level), r in sorted(cells.items(), key=lambda kv: (["clean", *DAMAGE].index(kv[0][0]), kv[0][1])):
         name = "clean" if family == "clean" else DAMAGE[family][0]
 
@@ -712,8 +720,16 @@ def damage_tables(rows) -> list[str]:
 
         lines.append(f"| {name} | {level:g} | {r['clean_rms']:.3f} | {number(r['clean_rms_undamaged'], 3)} | "
                      f"{number(r['damaged_marker_error'], 2)} | {r['activation_rms']:.3f} | {r['activation_max']:.2f} | "
-                     f"{r['opening_error_deg']:.2f} | {r['flagged']} / {r['frames']} | {r['failure'][:60]} |")
+                     f"{r['opening_error_deg']:.2f} | {r['flagged']} / {r['frames']} | "
+                     f"{named_controls(r.get('unobservable', {}))} | {r['failure'][:60]} |")
     return lines
+
+
+def named_controls(counts: dict, shown: int = 3) -> str:
+    """The controls most often named under-determined, with their frame counts."""
+    ranked = sorted(counts.items(), key=lambda item: (-item[1], item[0]))
+    text = ", ".join(f"{name} {frames}" for name, frames in ranked[:shown])
+    return text + (f" (+{len(ranked) - shown} more)" if len(ranked) > shown else "")
 
 
 def collect(paths) -> str:
@@ -892,6 +908,8 @@ def main():
     parser.add_argument("--remote-methods", nargs="+", default=list(REMOTE_METHODS), choices=list(REMOTE_METHODS))
     parser.add_argument("--damage-tets", type=int, default=5000, help="face of the damaged takes")
     parser.add_argument("--damage-frames", type=int, default=8, help="frames of the damaged take")
+    parser.add_argument("--damage-families", nargs="+", default=["clean", *DAMAGE], choices=["clean", *DAMAGE],
+                        help="damage study: only these takes (each level's damage is the same either way)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="runs/stability.jsonl", help="JSON lines, appended")
     parser.add_argument("--collect", nargs="+", metavar="JSONL", help="only print tables from these files")

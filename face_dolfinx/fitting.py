@@ -35,6 +35,9 @@ log = logging.getLogger(__name__)
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 MIN_TRUST_RADIUS = 0.01
 TMJ_STEP = 1e-6  # central-difference step of the closed-form jaw pose (rad, mm)
+# An under-determined frame names the controls whose weight in the weak directions is at least
+# this share of the largest: the ones that make up those directions, not every small contributor.
+WEAK_SHARE = 0.5
 
 
 @dataclass
@@ -53,6 +56,10 @@ class FitSettings:
     fit_head: bool = True
     fit_jaw: bool = True
     unreachable_rms: float = 3.0        # mm: a frame fitted worse than this is flagged
+    # A frame is flagged under-determined when some combination of controls moves its visible
+    # markers by less than this fraction of what a complete frame shows (``observability``;
+    # chosen from the damage study's gaps, docs/fitting.md).
+    observability_threshold: float = 0.1
     reuse_jacobian: bool = True         # first step of a frame: the last frame's J, turned with the head
     # Fresh Jacobians per frame after that first step (None: one per step); later steps reuse the
     # newest, turned with the head. A stale J whose step fails is always replaced.
@@ -82,6 +89,8 @@ class FrameResult:
     phases: dict = field(default_factory=dict)
     flag: str = ""                      # why this frame is doubtful or skipped ("" = fine)
     initial_rms: float = math.nan       # marker RMS error of the warm start, before fitting
+    observability: float = math.nan     # how well the visible markers determine the controls (1: as all do)
+    unobservable: list[str] = field(default_factory=list)  # controls they cannot determine
 
 
 class MarkerSet:
@@ -355,6 +364,7 @@ class FaceFitter:
         fresh_jacobians = 0
         converged_objective = settings.marker_tolerance**2 * max(1, int(present.sum()))
         steps = 0
+        marker_columns = None
         while steps < max_steps and objective > converged_objective:
             steps += 1
             base_u, base_controls = self.problem.u.x.array.copy(), self.problem.controls.copy()
@@ -414,7 +424,41 @@ class FaceFitter:
         if result.rms_error > settings.unreachable_rms:
             result.flag = (f"targets not reachable: marker RMS {result.rms_error:.2f} mm after "
                            f"{steps} Gauss-Newton steps (threshold {settings.unreachable_rms} mm)")
+        if marker_columns is None and self._cached_jacobian is not None:  # on target before any step
+            marker_columns = self._reused_columns(state)[1]
+        if marker_columns is not None:
+            self._flag_unobservable(result, marker_columns, present)
         return result
+
+    def _flag_unobservable(self, result: FrameResult, marker_columns: np.ndarray, present: np.ndarray) -> None:
+        """Name the controls the frame's visible markers cannot determine, in the result's flag
+        and a warning; the fitted controls are kept. ``marker_columns`` holds every marker on
+        every rank (``PointEvaluator`` sums them over the ranks), so all ranks agree."""
+        threshold = self.settings.observability_threshold
+        result.observability, weights = observability(marker_columns, present, threshold)
+        if not weights.any():
+            return
+        result.unobservable = [name for name, weight in zip(self._control_names(), weights)
+                               if weight >= WEAK_SHARE * weights.max()]
+        message = (f"under-determined: the {int(present.sum())} visible markers cannot determine "
+                   f"{', '.join(result.unobservable)} (observability {result.observability:.3g}, "
+                   f"threshold {threshold:g}); the fitted values are kept")
+        result.flag = f"{result.flag}; {message}" if result.flag else message
+        if self.problem.comm.rank == 0:
+            log.warning("frame %d: %s", result.frame, message)
+
+    def _control_names(self) -> list[str]:
+        """Names of the Jacobian's columns, in order."""
+        n, head, jaw = self._layout()
+        names = [muscle.name for muscle in self.problem.model.muscles]
+        if head:
+            names += ([f"head_rotation_{axis}" for axis in "xyz"] + [f"head_translation_{axis}" for axis in "xyz"]
+                      if head == 6 else [f"head_M{i}{j}" for i in range(3) for j in range(3)]
+                      + [f"head_t{axis}" for axis in "xyz"])
+        if jaw:
+            names += (["jaw_opening", "jaw_slide_right", "jaw_slide_left"] if jaw == 3 else
+                      [f"jaw_M{i}{j}" for i in range(3) for j in range(3)] + [f"jaw_t{axis}" for axis in "xyz"])
+        return names
 
     def _adapt_trust_radius(self, step, actual_decrease, predicted_decrease) -> None:
         n = self.problem.num_muscles
@@ -513,6 +557,39 @@ class FaceFitter:
         self._cached_jacobian = None if checkpoint.jacobian_state is None else (
             checkpoint.jacobian_state.copy(), checkpoint.jacobian_dofs.copy(),
             checkpoint.jacobian_markers.copy())
+
+
+def observability(marker_columns: np.ndarray, present: np.ndarray, threshold: float) -> tuple[float, np.ndarray]:
+    """How well the visible markers determine the controls, from the marker Jacobian.
+
+    ``marker_columns`` (controls, markers, 3): d(marker)/dc at every marker; ``present``: the
+    visible markers. Each column is scaled by its norm over all markers, so that every control
+    counts with the marker motion it causes in a complete frame. Combinations that move no marker
+    even in a complete frame (a muscle no marker sees, redundant affine numbers) are the model's
+    limit, not the frame's, and are left out. Returns
+
+    - the smallest singular value of the scaled visible Jacobian over that of the scaled complete
+      one: the least any combination of controls moves the visible markers, relative to the least
+      a complete frame would show (1 with every marker present, 0 when some combination moves no
+      visible marker);
+    - per control, its weight in the weak directions, the right singular vectors of the scaled
+      visible Jacobian whose singular value is below ``threshold`` times the complete frame's
+      smallest: ||P_weak e_i||^2, 0 with no weak direction, 1 for a control lying in them.
+    Both catch a control whose markers are missing and controls whose visible effects coincide.
+    """
+    count = len(marker_columns)
+    response = np.linalg.norm(marker_columns.reshape(count, -1), axis=1)
+    scale = np.where(response > 1e-12 * response.max(), response, np.inf)[:, None, None]
+    scaled = marker_columns / scale
+    _, values, directions = np.linalg.svd(scaled.reshape(count, -1).T, full_matrices=False)
+    directions = directions[values > 1e-8 * values[0]]  # the combinations a complete frame sees
+    floor = values[len(directions) - 1]
+    visible = scaled[:, present].reshape(count, -1).T @ directions.T
+    _, visible_values, visible_directions = np.linalg.svd(visible, full_matrices=True)
+    visible_values = np.concatenate([visible_values,  # fewer visible rows than combinations
+                                     np.zeros(len(directions) - len(visible_values))])
+    weak = directions.T @ visible_directions[visible_values < threshold * floor].T
+    return float(visible_values[-1] / floor), np.sum(weak**2, axis=1)
 
 
 def _exact_head_combination(cranium: AffineMap) -> np.ndarray:

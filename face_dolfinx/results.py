@@ -13,7 +13,7 @@ Layout of a fit folder:
   activations.csv   frame, time, one column per muscle            } written when every frame is
   kinematics.csv    head rotation (row-major), translation, jaw   } done, from the frame files;
   marker_errors.csv frame, one column per marker (mm, empty = gap) } the same bytes however many
-  frames.csv        per frame: RMS/max error, GN steps, flag       } ranks, chunks or resumes
+  frames.csv        per frame: RMS/max error, GN steps, flags      } ranks, chunks or resumes
   timings.csv       per frame: seconds, split by phase (these differ from run to run)
   face.xdmf, *.png, renders/   the report (face_dolfinx.report)
 While a run is unfinished the folder holds ``IN_PROGRESS``; it is removed last, with the
@@ -67,7 +67,8 @@ def frame_to_dict(result: FrameResult) -> dict:
         jaw_tmj=None if result.jaw_tmj is None else result.jaw_tmj.tolist(),
         marker_errors=_nullable(result.marker_errors),
         rms_error=result.rms_error, max_error=result.max_error, initial_rms=result.initial_rms,
-        gn_steps=result.gn_steps, seconds=result.seconds, phases=result.phases, flag=result.flag)
+        gn_steps=result.gn_steps, seconds=result.seconds, phases=result.phases, flag=result.flag,
+        observability=_nullable([result.observability])[0], unobservable=result.unobservable)
 
 
 def frame_from_dict(data: dict) -> FrameResult:
@@ -79,7 +80,10 @@ def frame_from_dict(data: dict) -> FrameResult:
         marker_errors=_from_nullable(data["marker_errors"]),
         rms_error=data["rms_error"], max_error=data["max_error"], gn_steps=data["gn_steps"],
         seconds=data["seconds"], phases=data["phases"], flag=data["flag"],
-        initial_rms=data["initial_rms"])
+        initial_rms=data["initial_rms"],
+        # frame records written before the observability check have neither
+        observability=float(_from_nullable([data.get("observability")])[0]),
+        unobservable=data.get("unobservable", []))
 
 
 def _nullable(values: np.ndarray) -> list:
@@ -264,9 +268,9 @@ class FitFolder:
             for row, r in zip(rows, results):
                 row += [float(np.abs(r.activations - truth.activations[r.frame]).max()),
                         float(np.abs(r.jaw_tmj - truth.tmj[r.frame]).max()) if r.jaw_tmj is not None else np.nan]
-        columns.append("flag")
+        columns += ["observability", "unobservable", "flag"]
         for row, r in zip(rows, results):
-            row.append(r.flag)
+            row += [r.observability, " ".join(r.unobservable), r.flag]
         atomic_write_text(self.path / "frames.csv", _table(columns, rows))
         phases = ("sensitivities", "gn_solve", "equilibrium", "line_search")
         atomic_write_text(self.path / "timings.csv", _table(

@@ -5,6 +5,7 @@ starts from rest. Both formulations must recover the truth from noise-free data;
 Gaussian noise the marker RMS error must stay below 1.1 x the noise (the physically attainable
 shapes filter the noise out rather than fitting it).
 """
+from mpi4py import MPI
 import numpy as np
 import pytest
 
@@ -99,12 +100,33 @@ def test_missing_markers_and_empty_frames(take):
     fitter, result = fit(model, sites, gappy, first_frame_gn_steps=10, relative_decrease=1e-10)
     assert np.isnan(result.marker_errors[::3]).all()
     assert np.abs(result.activations - A_TRUE).max() < 1e-3
+    assert result.flag == ""  # 21 of 32 markers still determine every control
     empty = fitter.fit_frame(np.full_like(targets, np.nan), frame=1)
     assert "every marker is missing" in empty.flag
     assert np.array_equal(empty.activations, result.activations)  # nothing computed is lost
     two = np.full_like(targets, np.nan)
     two[:2] = targets[:2]
     assert "fewer than the 3" in fitter.fit_frame(two, frame=2).flag
+
+
+@pytest.mark.parametrize("mode", ["exact", "paper"])
+def test_frames_with_too_few_markers_are_flagged_under_determined(take, mode):
+    """3 of the 32 markers give 9 equations for 12 controls (exact mode; paper mode has 27): some
+    combination of them moves no visible marker. The frame is flagged, naming the controls, and
+    its fit is kept; a complete frame is not flagged."""
+    model, sites, targets = take
+    fitter, complete = fit(model, sites, targets, mode=mode, first_frame_gn_steps=10)
+    assert complete.flag == "" and complete.unobservable == []
+    assert complete.observability == pytest.approx(1.0)
+    sparse = np.full_like(targets, np.nan)
+    sparse[[0, 12, 24]] = targets[[0, 12, 24]]
+    result = fitter.fit_frame(sparse, frame=1)
+    assert result.observability < 1e-8
+    assert "under-determined" in result.flag
+    assert set(result.unobservable) & set(model.muscle_names)
+    assert all(name in result.flag for name in result.unobservable)
+    assert np.array_equal(result.activations, fitter.state.activations)  # the fit is kept
+    assert MPI.COMM_WORLD.allgather(result.unobservable) == [result.unobservable] * MPI.COMM_WORLD.size
 
 
 def slab_take(model, n_frames=6):
