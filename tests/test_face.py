@@ -130,8 +130,11 @@ def test_factorisation_reuse_gives_the_same_equilibrium_with_fewer_factorisation
     assert model.mesh.comm.allreduce(difference, op=MPI.MAX) < 1e-8
     fresh_factorizations, fresh_newton = counts[0]
     reused_factorizations, _ = counts[1]
-    assert fresh_factorizations == fresh_newton  # one per Newton iteration
-    assert reused_factorizations < fresh_factorizations / 2
+    # One per Newton iteration until Newton converges (CONVERGING_CORRECTION), then none.
+    assert fresh_factorizations < fresh_newton
+    # Reuse across solves: fewer still, and under half of full Newton's one per iteration.
+    assert reused_factorizations < fresh_factorizations
+    assert reused_factorizations < fresh_newton / 2
 
 
 def test_newton_from_an_equilibrium_stops_on_the_step_tolerance(model):
