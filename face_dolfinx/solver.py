@@ -22,9 +22,9 @@ Newton refactorises at every iteration until it is converging (the last correcti
 by more than ``CONVERGING_CORRECTION`` and cut the residual 4-fold); from there the factor of its
 last tangent finishes the solve. Optionally (``reuse_factorization``) Newton keeps the last MUMPS
 factor as its matrix (modified Newton) for as long as every iteration cuts the residual norm by
-``REFRESH_CONTRACTION`` or more, across solves too, and assembles and factorises the tangent only when it does not: between nearby equilibria (frames
-of a take) an iteration then costs a residual and a solve instead of an assembly and a
-factorisation. Every option is a PETSc option under the solver's prefix (default ``face_``), so a
+``REFRESH_CONTRACTION`` or more, across solves too, and assembles and factorises the tangent only
+when it does not: between nearby equilibria (frames of a take) an iteration then costs a residual
+and a solve instead of an assembly and a factorisation. Every option is a PETSc option under the solver's prefix (default ``face_``), so a
 user can override any of them from the command line.
 """
 from dataclasses import dataclass
@@ -68,9 +68,10 @@ REFRESH_CONTRACTION = 0.25
 
 # mm: once a Newton correction moved no dof further than this (and cut the residual by
 # REFRESH_CONTRACTION), the iterate is close enough for the factor of this solve's last tangent to
-# finish the job: the last one or two factorisations of every solve become cheap modified-Newton
-# iterations. Measured on the 50K face, rest -> smile / pucker / jaw opening: 7 / 9 / 19
-# factorisations -> 5 / 7 / 17 (8 / 10 / 21 iterations), 5.6 / 6.8 / 16.4 s -> 4.6 / 6.2 / 15.4 s.
+# finish the job: the last two factorisations of a solve become cheap modified-Newton iterations.
+# Measured on the 50K face, rest -> smile / pucker / jaw opening: 7 / 9 / 19 factorisations ->
+# 5 / 7 / 17 (10 / 12 / 27 iterations); at 50K a factorisation costs about what the extra
+# iterations do, at 400K several times more (docs/performance.md).
 CONVERGING_CORRECTION = 0.1
 
 # Inversion guard (see InversionGuard, _precheck): measured on the 50K face (rest -> smile,
@@ -182,6 +183,7 @@ class QuasistaticSolver:
         # mm: Newton has converged once a correction moves no dof further than this. 1e-8 mm lies
         # far below anything measurable and above the round-off of the corrections.
         self.step_tolerance = step_tolerance
+        self.converging_correction = CONVERGING_CORRECTION  # 0: a fresh factor every iteration
         self.factorizations = 0     # numerical factorisations so far (a cost counter)
         self._factor_is_current = False  # the factor belongs to the tangent at the unknown
         self._has_factor = False         # some tangent has been factorised (reuse mode keeps it)
@@ -334,7 +336,7 @@ class QuasistaticSolver:
         if self.reuse_factorization:
             keep = iteration == 0 or contracting
         else:  # this solve's own factor, once Newton has converged to within CONVERGING_CORRECTION
-            keep = contracting and self._correction_size <= CONVERGING_CORRECTION
+            keep = contracting and self._correction_size < self.converging_correction
         keep = keep and self._has_factor and not self._step_was_cut
         self._fresh_factor_in_iteration = not keep
         if keep:

@@ -31,10 +31,10 @@ def test_simulate_writes_a_complete_result(builtin_model_path, shared_tmp):
 
 
 def test_simulate_from_a_coarse_model(builtin_model_path, shared_tmp):
-    """The plumbing of --coarse: with the model as its own coarse model the start is the
-    equilibrium itself, so the fine Newton has (almost) nothing left to do."""
+    """The plumbing of --coarse: with the model as its own coarse model the start of the jaw
+    opening is the equilibrium itself, so the fine Newton has (almost) nothing left to do."""
     out = shared_tmp / "coarse"
-    assert main(["simulate", "smile", "--model", str(builtin_model_path), "--coarse",
+    assert main(["simulate", "jaw_open", "--model", str(builtin_model_path), "--coarse",
                  str(builtin_model_path), "--out", str(out), "--no-render"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["coarse_model"] == str(builtin_model_path)

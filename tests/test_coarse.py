@@ -53,3 +53,10 @@ def test_coarse_model_of_another_face_is_rejected():
         CoarseStart(coarse, FaceProblem(other))
     with pytest.raises(ValueError, match="P1"):
         CoarseStart(FaceProblem(slab_model((4, 2, 2)), degree=2), coarse)
+
+
+def test_activations_alone_are_solved_on_the_fine_model_directly():
+    coarse, fine = FaceProblem(slab_model((4, 2, 2))), FaceProblem(slab_model((8, 4, 2)))
+    report = CoarseStart(coarse, fine).solve(activations=[0.5, 0.2, 0.8])
+    assert report.converged and fine.residual_norm() < 1e-6
+    assert np.all(coarse.u.x.array == 0.0)  # the coarse model was not asked
