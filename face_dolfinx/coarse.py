@@ -6,9 +6,9 @@ that a coarse mesh resolves as well; started from the coarse equilibrium interpo
 nodes, the fine Newton only corrects the discretisation difference. (For muscle-driven shapes it
 does not pay: see ``CoarseStart.solve``.) Measured on the built-in face, jaw opening by 15 degrees:
 the 50K face took 19 Newton iterations in 2 load steps from rest, and 5 iterations in one step
-from the 20K equilibrium (5.3 s for the coarse solve, 0.1 s for the transfer); at 404K tets,
-2 ranks, 32 iterations in 3 load steps (239-297 s) against 6 from the 50K equilibrium (60 s in
-all). docs/performance.md has the table.
+from the 20K equilibrium (5.3 s for the coarse solve, 0.1 s for the transfer); at 404K tets on
+2 ranks, 52 iterations in 3 load steps (226 s) against 9 in one from the 50K equilibrium (47 s
+in all). docs/performance.md has the table.
 
 The coarse mesh is small: every rank holds all of it (cells and rest coordinates) and locates its
 fine nodes in it once. A fine node outside the coarse mesh (the two surfaces are facetted
@@ -36,7 +36,8 @@ class CoarseStart:
     ``coarse`` must be a P1 ``FaceProblem`` of the same face (same muscles in the same order, same
     bone frames) on a coarser mesh; ``fine`` any ``FaceProblem``. ``max_outside`` bounds how far
     outside the coarse mesh a fine node may lie, in barycentric units of the nearest coarse cell
-    (0.34 between the built-in faces of 5K and 400K tets); farther means another face.
+    (at most 0.34 between the built-in faces of 20K, 50K and 404K tets); farther means another
+    face.
     """
 
     def __init__(self, coarse, fine, max_outside: float = 1.0):
