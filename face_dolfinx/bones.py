@@ -38,6 +38,10 @@ class AffineMap:
         return AffineMap((1 - t) * self.matrix + t * other.matrix,
                          (1 - t) * self.translation + t * other.translation)
 
+    def same_as(self, other: "AffineMap") -> bool:
+        """The same 12 numbers exactly."""
+        return np.array_equal(self.matrix, other.matrix) and np.array_equal(self.translation, other.translation)
+
     def homogeneous(self) -> np.ndarray:
         H = np.eye(4)
         H[:3, :3], H[:3, 3] = self.matrix, self.translation

@@ -55,6 +55,8 @@ class CoarseStart:
         self._owned = index_map.size_local
         self._global = index_map.local_to_global(
             np.arange(index_map.size_local + index_map.num_ghosts, dtype=np.int32))
+        # Where each rank's owned coarse dofs go in the gathered array: fixed, so gathered once.
+        self._gathered_ids = np.concatenate(self.comm.allgather(self._global[:self._owned]))
         rest = self._gather(coarse.dof_coordinates)
         num_cells = coarse.mesh.topology.index_map(3).size_local
         local_cells = self._global[coarse.V.dofmap.list.array.reshape(-1, 4)[:num_cells]]
@@ -70,8 +72,7 @@ class CoarseStart:
         """The coarse dof values (rows = blocks) of all ranks, in global numbering, on every rank."""
         owned = values.reshape(-1, 3)[:self._owned]
         gathered = np.empty((self.coarse.V.dofmap.index_map.size_global, 3))
-        gathered[np.concatenate(self.comm.allgather(self._global[:self._owned]))] = \
-            np.concatenate(self.comm.allgather(owned))
+        gathered[self._gathered_ids] = np.concatenate(self.comm.allgather(owned))
         return gathered
 
     def guess(self) -> np.ndarray:
@@ -104,8 +105,7 @@ class CoarseStart:
 
     def _bones_move(self, cranium, jaw) -> bool:
         current = self.fine.controls
-        return any(new is not None and not (np.array_equal(new.matrix, old.matrix)
-                                            and np.array_equal(new.translation, old.translation))
+        return any(new is not None and not new.same_as(old)
                    for new, old in ((cranium, current.cranium), (jaw, current.jaw)))
 
 

@@ -292,7 +292,7 @@ class FaceProblem:
         def predictor(t0, t1):
             old = start.cranium.interpolate(target.cranium, t0)
             new = start.cranium.interpolate(target.cranium, t1)
-            if not (np.array_equal(old.matrix, new.matrix) and np.array_equal(old.translation, new.translation)):
+            if not old.same_as(new):
                 self._move_rigidly(old, new)
 
         report = self.solver.solve_continuation(set_controls, predictor=predictor,
