@@ -12,8 +12,13 @@ then fits the same stretch of it with each ``--variants`` entry, one fresh probl
   naive     the baseline: a factorisation at every Newton iteration, and the paper's
             golden-section line search on every Gauss-Newton step (the full step one of its
             candidates), not only when the full step fails
+  reuse-1j-loose-gn2   reuse-1j with Newton stopping at 1e-4 mm corrections (not 1e-8 mm) and
+            2 Gauss-Newton steps per warm frame (not 3)
+  krylov-1j-loose-gn2  the same, the old factor preconditioning GMRES on the exact tangent instead
+            of refactorising when modified Newton slows (``krylov_on_old_factor``)
 
-Per frame one JSON line (phases: sensitivities = factorisation and the dX/dc solves, gn_solve =
+Per frame one JSON line (solver counters: factorisations, residual evaluations, GMRES iterations;
+phases: sensitivities = factorisation and the dX/dc solves, gn_solve =
 the small least-squares step, equilibrium = the solve at the full step, line_search =
 golden-section trials), per variant a summary over the warm-started frames (every frame but the
 first, which starts from rest), and at the end the time ratio of each variant to the first.
@@ -33,13 +38,18 @@ import time
 from mpi4py import MPI
 import numpy as np
 
+LOOSE = dict(newton_tolerance=1e-4)  # mm
 VARIANTS = {  # name: (FaceProblem keywords, FitSettings fields, QuasistaticSolver attributes)
     "fresh": (dict(reuse_factorization=False), {}, {}),
     "reuse": (dict(reuse_factorization=True), {}, {}),
     "reuse-1j": (dict(reuse_factorization=True), dict(max_fresh_jacobians=1), {}),
     "naive": (dict(reuse_factorization=False), dict(line_search_every_step=True),
               dict(converging_correction=0.0)),
+    "reuse-1j-loose-gn2": (dict(reuse_factorization=True, **LOOSE), dict(max_fresh_jacobians=1, max_gn_steps=2), {}),
+    "krylov-1j-loose-gn2": (dict(reuse_factorization=True, krylov_on_old_factor=True, **LOOSE),
+                            dict(max_fresh_jacobians=1, max_gn_steps=2), {}),
 }
+COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations")  # QuasistaticSolver's
 PHASES = ("sensitivities", "gn_solve", "equilibrium", "line_search")
 
 
@@ -52,14 +62,17 @@ def fit_variant(name, model, sites, capture, truth, args, comm) -> dict:
     for attribute, value in solver_attributes.items():
         setattr(problem.solver, attribute, value)
     fitter = FaceFitter(problem, MarkerSet(problem, sites),
-                        FitSettings(mode=args.mode, max_gn_steps=args.gn_steps, **settings))
+                        FitSettings(**{**dict(mode=args.mode, max_gn_steps=args.gn_steps), **settings}))
     rows = []
-    factorizations = [0]
+    counted = dict.fromkeys(COUNTERS, 0)
 
     def report(result):
-        done, factorizations[0] = factorizations[0], problem.solver.factorizations
+        counts = {}
+        for counter in COUNTERS:
+            counts[counter] = getattr(problem.solver, counter) - counted[counter]
+            counted[counter] = getattr(problem.solver, counter)
         row = dict(variant=name, frame=args.start + result.frame, seconds=round(result.seconds, 2),
-                   gn_steps=result.gn_steps, factorizations=factorizations[0] - done,
+                   gn_steps=result.gn_steps, **counts,
                    rms_mm=round(result.rms_error, 3),
                    activation_error=round(float(np.abs(result.activations - truth.activations[result.frame]).max()), 3),
                    **{k: round(v, 2) for k, v in result.phases.items()})
@@ -71,7 +84,7 @@ def fit_variant(name, model, sites, capture, truth, args, comm) -> dict:
     warm = rows[1:]
     return dict(variant=name, first_frame_s=rows[0]["seconds"],
                 warm_mean_s=round(float(np.mean([r["seconds"] for r in warm])), 2),
-                warm_factorizations=round(float(np.mean([r["factorizations"] for r in warm])), 1),
+                **{"warm_" + c: round(float(np.mean([r[c] for r in warm])), 1) for c in COUNTERS},
                 warm_phases_s={k: round(float(np.mean([r[k] for r in warm])), 2) for k in PHASES},
                 warm_mean_rms_mm=round(float(np.mean([r["rms_mm"] for r in warm])), 3),
                 warm_max_activation_error=round(float(np.max([r["activation_error"] for r in warm])), 3))

@@ -260,6 +260,8 @@ def fit(model, args) -> None:
     capture = placement.aligned(capture)
     truth_file = pathlib.Path(args.truth) if args.truth else truth_path(capture_path)
     truth = load_truth(truth_file) if truth_file.exists() else None
+    if not args.newton_tolerance > 0:
+        raise SystemExit(f"--newton-tolerance {args.newton_tolerance}: give a positive distance in mm")
     if args.fresh_jacobians is not None and args.fresh_jacobians < 0:
         raise SystemExit(f"--fresh-jacobians {args.fresh_jacobians}: give 0 or more fresh Jacobians per frame")
     settings = FitSettings(mode=args.mode, max_gn_steps=args.gn_steps,
@@ -267,6 +269,7 @@ def fit(model, args) -> None:
     run = dict(capture=str(capture_path.resolve()), model=str(model.path), mode=args.mode,
                gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames,
                chunks=args.chunks, reuse_factorization=args.reuse_factorization,
+               newton_tolerance=args.newton_tolerance,
                fresh_jacobians=args.fresh_jacobians)
     run.update(alignment=placement.method, neutral_frame=placement.neutral_frame,
                correspondence=str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None)
@@ -295,7 +298,8 @@ def fit(model, args) -> None:
     group = comm.rank * groups // comm.size
     group_comm = comm.Split(group, comm.rank) if groups > 1 else comm
     group_model = load_model(model.path, group_comm) if groups > 1 else model
-    problem = FaceProblem(group_model, reuse_factorization=args.reuse_factorization)
+    problem = FaceProblem(group_model, reuse_factorization=args.reuse_factorization,
+                          newton_tolerance=args.newton_tolerance)
     node_order = FileNodeOrder(problem.V)
     markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
     # A chunk is fitted from its first unfinished frame on, so that every frame after it starts
@@ -532,6 +536,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="fresh Jacobians per warm frame after its first Gauss-Newton step, which "
                         "reuses the last frame's (default: one per step; 1 with "
                         "--reuse-factorization is the fast setting of docs/performance.md)")
+    p.add_argument("--newton-tolerance", type=float, default=1e-8, metavar="MM",
+                   help="Newton stops once a correction moves no node further than this (default "
+                        "1e-8 mm; 1e-4 mm changed no fitted marker or activation error in "
+                        "docs/performance.md and saves iterations)")
     p.add_argument("--chunks", type=int, default=1,
                    help="split the take into independent chunks (each starts from rest); under "
                         "mpirun the ranks share them out")

@@ -130,6 +130,14 @@ class FaceProblem:
     reuse_factorization : keep the last MUMPS factor as Newton's matrix across iterations and
         solves (modified Newton), refactorising only when an iteration contracts the residual
         too little (see solver.py).
+    krylov_on_old_factor : with ``reuse_factorization``, solve each Newton correction by GMRES on
+        the exact (matrix-free) tangent preconditioned by the old factor, refactorising only when
+        GMRES slows (solver.KRYLOV_OPTIONS): exact Newton steps at a residual evaluation and a
+        solve per GMRES iteration. Not faster at 404K P1 tets (docs/performance.md); for meshes
+        where a factorisation costs far more than a solve.
+    newton_tolerance : mm; Newton has converged once a correction moves no dof further than this
+        (``QuasistaticSolver.step_tolerance``). 1e-4 mm changed no fitted marker or activation
+        error in docs/performance.md.
     inversion_guard : shorten Newton steps that would flatten a cell (``solver.InversionGuard``);
         off only to measure what the guard buys (``benchmarks/stability.py``; solves without a
         ``guess``, which the guard pulls back).
@@ -137,6 +145,7 @@ class FaceProblem:
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
                  petsc_options: dict | None = None, reuse_factorization: bool = False,
+                 krylov_on_old_factor: bool = False, newton_tolerance: float = 1e-8,
                  inversion_guard: bool = True):
         self.model = model
         mesh = self.mesh = model.mesh
@@ -177,7 +186,9 @@ class FaceProblem:
         self.solver = QuasistaticSolver(residual, self.u, self.bcs, energy=energy,
                                         petsc_options=petsc_options,
                                         inversion_guard=InversionGuard(self.V) if inversion_guard else None,
-                                        reuse_factorization=reuse_factorization)
+                                        reuse_factorization=reuse_factorization,
+                                        krylov_on_old_factor=krylov_on_old_factor,
+                                        step_tolerance=newton_tolerance)
         self.controls = Controls(np.zeros(self.num_muscles), AffineMap(), AffineMap())
         self._set_controls(self.controls)
 

@@ -66,6 +66,26 @@ DEFAULT_PETSC_OPTIONS = {
 # solves at 200K dofs, so a contraction of 0.25 or better pays for itself.
 REFRESH_CONTRACTION = 0.25
 
+# ``krylov_on_old_factor`` (with factorisation reuse): each Newton correction is solved by GMRES on
+# the exact tangent, applied matrix-free (a residual evaluation per product), preconditioned by the
+# old factor, Eisenstat-Walker setting how exactly; the factor is refreshed only when a linear solve
+# needs more than KRYLOV_REFRESH_ITERATIONS (a GMRES solve that stops at ksp_max_it still yields its
+# best step). Measured at 404K tets tracking (docs/performance.md): 1 factorisation per frame
+# instead of 3-5, but 64-95 residual evaluations and 46-63 solves (0.28 s each), so no faster
+# than refactorising; it pays where a factorisation costs far more than a solve.
+KRYLOV_REFRESH_ITERATIONS = 8
+KRYLOV_OPTIONS = {
+    "snes_mf_operator": None,
+    "snes_ksp_ew": None,
+    # Eisenstat-Walker's default cap (0.9) let GMRES stop after one iteration while Newton crawled
+    # (18 iterations on a tracking frame at 50K tets).
+    "snes_ksp_ew_rtolmax": 0.1,
+    "ksp_type": "gmres",
+    "ksp_rtol": 1e-3,
+    "ksp_max_it": 15,
+    "snes_max_linear_solve_fail": 1000,
+}
+
 # mm: once a Newton correction moved no dof further than this (and cut the residual by
 # REFRESH_CONTRACTION), the iterate is close enough for the factor of this solve's last tangent to
 # finish the job: the last two factorisations of a solve become cheap modified-Newton iterations.
@@ -176,7 +196,8 @@ class QuasistaticSolver:
                  jacobian: ufl.Form | None = None, energy: ufl.Form | None = None,
                  petsc_options: dict | None = None, options_prefix: str = "face_",
                  inversion_guard: InversionGuard | None = None,
-                 reuse_factorization: bool = False, step_tolerance: float = 1e-8):
+                 reuse_factorization: bool = False, krylov_on_old_factor: bool = False,
+                 step_tolerance: float = 1e-8):
         self.unknown = unknown
         self.inversion_guard = inversion_guard
         self.reuse_factorization = reuse_factorization
@@ -185,6 +206,8 @@ class QuasistaticSolver:
         self.step_tolerance = step_tolerance
         self.converging_correction = CONVERGING_CORRECTION  # 0: a fresh factor every iteration
         self.factorizations = 0     # numerical factorisations so far (a cost counter)
+        self.residual_evaluations = 0  # residual assemblies so far (matrix-free products included)
+        self.linear_iterations = 0     # Krylov iterations (each one solve with the factor) so far
         self._factor_is_current = False  # the factor belongs to the tangent at the unknown
         self._has_factor = False         # some tangent has been factorised (reuse mode keeps it)
         self._refreshed_in_solve = False
@@ -198,8 +221,14 @@ class QuasistaticSolver:
         self.energy_form = compile_form(energy) if energy is not None else None
 
         self._residual_vector = fem_petsc.create_vector(self.residual_form)
+        self._residual_work = self._residual_vector.duplicate()
         self.tangent = fem_petsc.create_matrix(self.jacobian_form)
         self.tangent.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        # Makes MUMPS factorise without numerical pivoting (SYM = 1): 4.4-5.0 s instead of 5.5 s at
+        # 404K tets, same solve residual (1e-12). Off equilibrium the tangent may have a few
+        # negative pivots (2 of 237K seen mid-Newton on the pucker), which this LDL^T factorises
+        # as well; a zero pivot fails the linear solve and the continuation fallback takes over.
+        self.tangent.setOption(PETSc.Mat.Option.SPD, True)
         self._solution = unknown.vector.duplicate()
         self._start = unknown.vector.duplicate()  # where the current Newton solve began
         self._prescribed = None  # work vector of bc_error
@@ -208,6 +237,11 @@ class QuasistaticSolver:
         self.snes.setOptionsPrefix(options_prefix)
         opts = PETSc.Options()
         defaults = dict(DEFAULT_PETSC_OPTIONS)
+        if krylov_on_old_factor:
+            if not reuse_factorization:
+                raise ValueError("krylov_on_old_factor needs reuse_factorization: without it every "
+                                 "Newton iteration has a fresh factor and nothing to precondition")
+            defaults.update(KRYLOV_OPTIONS)
         if inversion_guard is not None:
             defaults["snes_linesearch_maxstep"] = GUARDED_MAX_LAMBDA
         wanted = {options_prefix + key: value
@@ -238,16 +272,24 @@ class QuasistaticSolver:
         self.unknown.vector.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
     def _assemble_residual(self, snes, x, b):
+        self.residual_evaluations += 1
         self._set_unknown(x)
+        # Matrix-free products (-snes_mf_operator) evaluate the residual into vectors without
+        # ghosts: assemble into our own and copy the owned values.
         with b.localForm() as b_local:
-            b_local.set(0.0)
-        fem_petsc.assemble_vector(b, self.residual_form)
+            target = b if b_local.handle else self._residual_work
+        with target.localForm() as target_local:
+            target_local.set(0.0)
+        fem_petsc.assemble_vector(target, self.residual_form)
         # Lifting costs twice the residual (it runs the tangent kernel on bone-adjacent cells) and
         # vanishes once the iterate holds the Dirichlet values: after the first full step.
         if self.bc_error(x) > 0.0:
-            fem_petsc.apply_lifting(b, [self.jacobian_form], bcs=[self.bcs], x0=[x], scale=-1.0)
-        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        fem_petsc.set_bc(b, self.bcs, x, -1.0)
+            fem_petsc.apply_lifting(target, [self.jacobian_form], bcs=[self.bcs], x0=[self.unknown.vector],
+                                    scale=-1.0)
+        target.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fem_petsc.set_bc(target, self.bcs, x, -1.0)
+        if target is not b:
+            target.copy(b)
 
     def _precheck(self, x, step):
         """Line-search pre-check: records the size of the Newton correction (for the step
@@ -332,7 +374,13 @@ class QuasistaticSolver:
     def _assemble_tangent(self, snes, x, A, P):
         self._factor_is_current = False  # the Newton step moves the unknown away from it
         iteration = snes.getIterationNumber()
-        contracting = iteration > 0 and self._contraction <= REFRESH_CONTRACTION
+        if A.handle != P.handle:
+            # -snes_mf_operator: Krylov on the exact tangent (J v by differencing the residual at
+            # x), preconditioned by the factor of P; the factor is refreshed when Krylov slows.
+            A.assemble()
+            contracting = iteration > 0 and snes.getKSP().getIterationNumber() <= KRYLOV_REFRESH_ITERATIONS
+        else:
+            contracting = iteration > 0 and self._contraction <= REFRESH_CONTRACTION
         if self.reuse_factorization:
             keep = iteration == 0 or contracting
         else:  # this solve's own factor, once Newton has converged to within CONVERGING_CORRECTION
@@ -341,7 +389,7 @@ class QuasistaticSolver:
         self._fresh_factor_in_iteration = not keep
         if keep:
             return  # A is untouched, so the PC keeps its factor: a modified Newton iteration
-        self._assemble_tangent_matrix(A)
+        self._assemble_tangent_matrix(P)
         # The PC sees a changed matrix and factorises it when the KSP is set up.
         self.factorizations += 1
         self._has_factor = self._refreshed_in_solve = True
@@ -395,12 +443,14 @@ class QuasistaticSolver:
         self.unknown.vector.copy(self._start)
         self._start.copy(self._solution)
         self.snes.solve(None, self._solution)
+        self.linear_iterations += self.snes.getLinearSolveIterations()
         reason = self.snes.getConvergedReason()
         if reason < 0 and self.reuse_factorization and not self._refreshed_in_solve:
             # Only the old factor was used and Newton failed: retry once with fresh tangents.
             self._has_factor = False
             self._start.copy(self._solution)
             self.snes.solve(None, self._solution)
+            self.linear_iterations += self.snes.getLinearSolveIterations()
             reason = self.snes.getConvergedReason()
         self._set_unknown(self._solution)
         if reason > 0 and self.bc_error() > 1e-8:

@@ -141,6 +141,38 @@ def test_factorisation_reuse_gives_the_same_equilibrium_with_fewer_factorisation
     assert reused_factorizations < fresh_newton / 2
 
 
+def test_krylov_on_the_old_factor_gives_the_same_equilibrium_without_refactorising(model):
+    """GMRES on the matrix-free tangent, preconditioned by the last factor: the equilibrium of
+    the next, nearby state to 1e-8 as with full Newton, from the old factor alone (under mpirun
+    the matrix-free products evaluate the residual into vectors without ghosts)."""
+    expression = dict(model.expressions["smile"])
+    expression.pop("jaw_opening_deg", None)
+    nearby = {name: 0.9 * value for name, value in expression.items()}
+    reference = FaceProblem(model)
+    reference.solve(activations=nearby)
+    problem = FaceProblem(model, reuse_factorization=True, krylov_on_old_factor=True)
+    assert problem.solve(activations=expression).converged
+    factorizations, iterations = problem.solver.factorizations, problem.solver.linear_iterations
+    report = problem.solve(activations=nearby)
+    assert report.converged and report.load_steps == 1
+    assert problem.solver.factorizations == factorizations
+    assert problem.solver.linear_iterations - iterations > report.newton_iterations  # GMRES did work
+    difference = np.linalg.norm(problem.u.x.array - reference.u.x.array) / np.linalg.norm(reference.u.x.array)
+    assert model.mesh.comm.allreduce(difference, op=MPI.MAX) < 1e-8
+    with pytest.raises(ValueError, match="needs reuse_factorization"):
+        FaceProblem(model, krylov_on_old_factor=True)
+
+
+def test_newton_tolerance_bounds_the_last_correction(model):
+    """A looser Newton tolerance (mm) saves iterations and leaves the shape within it."""
+    expression = dict(model.expressions["smile"])
+    expression.pop("jaw_opening_deg", None)
+    tight, loose = FaceProblem(model), FaceProblem(model, newton_tolerance=1e-4)
+    tight_report, loose_report = tight.solve(activations=expression), loose.solve(activations=expression)
+    assert loose_report.converged and loose_report.newton_iterations < tight_report.newton_iterations
+    assert 0.0 < model.mesh.comm.allreduce(np.abs(loose.u.x.array - tight.u.x.array).max(), op=MPI.MAX) < 1e-4
+
+
 def test_newton_from_an_equilibrium_stops_on_the_step_tolerance(model):
     """A residual tolerance below the round-off floor can never be met; Newton started at a
     converged state then stops once its correction is below the step tolerance instead of
