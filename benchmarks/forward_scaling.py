@@ -78,10 +78,15 @@ TABLE_HEADER = ("| tets | dofs | ranks | factor reuse | coarse start | build s |
                 "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
 
 
+def _factor_reuse(row: dict) -> str:
+    if not row.get("reuse_factorization"):
+        return "no"
+    return "krylov" if row.get("krylov") else "yes"
+
+
 def markdown_rows(row: dict) -> str:
     return "".join(
-        f"| {row['tets']} | {row['dofs']} | {row['ranks']} | "
-        f"{('krylov' if row.get('krylov') else 'yes') if row.get('reuse_factorization') else 'no'} | "
+        f"| {row['tets']} | {row['dofs']} | {row['ranks']} | {_factor_reuse(row)} | "
         f"{row.get('coarse_tets') or 'no'} | "
         f"{row['build_s']} | {row['setup_s']} | {name} | {s['seconds']} | {s['newton']} | "
         f"{s.get('factorizations', s['newton'])} | {s['load_steps']} | {row['peak_memory_gb']} |\n"

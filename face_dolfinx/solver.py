@@ -227,7 +227,8 @@ class QuasistaticSolver:
         # Makes MUMPS factorise without numerical pivoting (SYM = 1): 4.4-5.0 s instead of 5.5 s at
         # 404K tets, same solve residual (1e-12). Off equilibrium the tangent may have a few
         # negative pivots (2 of 237K seen mid-Newton on the pucker), which this LDL^T factorises
-        # as well; a zero pivot fails the linear solve and the continuation fallback takes over.
+        # as well. A zero pivot would fail the linear solve, i.e. the Newton solve, which the
+        # continuation fallback then takes over (not seen in any test or benchmark).
         self.tangent.setOption(PETSc.Mat.Option.SPD, True)
         self._solution = unknown.vector.duplicate()
         self._start = unknown.vector.duplicate()  # where the current Newton solve began

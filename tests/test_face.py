@@ -26,6 +26,13 @@ def marker_displacements(problem, model):
     return PointEvaluator(problem.V, points).values(problem.u.x.array)
 
 
+def smile_activations(model) -> dict:
+    """The built-in smile's muscle activations, without its jaw opening."""
+    expression = dict(model.expressions["smile"])
+    expression.pop("jaw_opening_deg", None)
+    return expression
+
+
 def widest_jaw(model):
     jaw = model.jaw
     return jaw_pose(jaw, math.asin(jaw.max_opening_sine), jaw.track_length, jaw.track_length)
@@ -114,8 +121,7 @@ def test_inversion_guard_shortens_an_inverting_step_only(model):
 
 
 def test_factorisation_reuse_gives_the_same_equilibrium_with_fewer_factorisations(model):
-    expression = dict(model.expressions["smile"])
-    expression.pop("jaw_opening_deg", None)
+    expression = smile_activations(model)
     shapes, counts = [], []
     for reuse in (False, True):
         problem = FaceProblem(model, reuse_factorization=reuse)
@@ -145,8 +151,7 @@ def test_krylov_on_the_old_factor_gives_the_same_equilibrium_without_refactorisi
     """GMRES on the matrix-free tangent, preconditioned by the last factor: the equilibrium of
     the next, nearby state to 1e-8 as with full Newton, from the old factor alone (under mpirun
     the matrix-free products evaluate the residual into vectors without ghosts)."""
-    expression = dict(model.expressions["smile"])
-    expression.pop("jaw_opening_deg", None)
+    expression = smile_activations(model)
     nearby = {name: 0.9 * value for name, value in expression.items()}
     reference = FaceProblem(model)
     reference.solve(activations=nearby)
@@ -165,8 +170,7 @@ def test_krylov_on_the_old_factor_gives_the_same_equilibrium_without_refactorisi
 
 def test_newton_tolerance_bounds_the_last_correction(model):
     """A looser Newton tolerance (mm) saves iterations and leaves the shape within it."""
-    expression = dict(model.expressions["smile"])
-    expression.pop("jaw_opening_deg", None)
+    expression = smile_activations(model)
     tight, loose = FaceProblem(model), FaceProblem(model, newton_tolerance=1e-4)
     tight_report, loose_report = tight.solve(activations=expression), loose.solve(activations=expression)
     assert loose_report.converged and loose_report.newton_iterations < tight_report.newton_iterations
@@ -179,8 +183,7 @@ def test_newton_from_an_equilibrium_stops_on_the_step_tolerance(model):
     stalling to the iteration limit (which raised mid-take when a line search's best point was
     re-solved)."""
     problem = FaceProblem(model, petsc_options=dict(snes_atol=1e-30, snes_rtol=1e-30))
-    expression = dict(model.expressions["smile"])
-    expression.pop("jaw_opening_deg", None)
+    expression = smile_activations(model)
     assert problem.solve(activations=expression).converged
     converged, iterations, reason = problem.solver.newton()
     assert converged and iterations <= 2 and "SNORM" in reason
@@ -188,8 +191,7 @@ def test_newton_from_an_equilibrium_stops_on_the_step_tolerance(model):
 
 def test_adopt_takes_a_solved_state_without_solving(model):
     problem = FaceProblem(model)
-    expression = dict(model.expressions["smile"])
-    expression.pop("jaw_opening_deg", None)
+    expression = smile_activations(model)
     problem.solve(activations=expression)
     smile, controls = problem.u.x.array.copy(), problem.controls.copy()
     problem.solve(activations=np.zeros(problem.num_muscles))
