@@ -27,7 +27,7 @@ def peak_memory_gb(comm) -> float:
 
 def run_resolution(target_tets: int, expressions: list[str], degree: int,
                    reuse_factorization: bool = False, coarse_tets: int | None = None,
-                   krylov: bool = False) -> dict:
+                   krylov: bool = False, refresh_contraction: float | None = None) -> dict:
     from face_dolfinx.anatomy import build_builtin_face
     from face_dolfinx.bones import AffineMap, jaw_pose
     from face_dolfinx.coarse import CoarseStart
@@ -43,7 +43,8 @@ def run_resolution(target_tets: int, expressions: list[str], degree: int,
     t_load = time.perf_counter() - t0
     t0 = time.perf_counter()
     problem = FaceProblem(model, degree=degree, reuse_factorization=reuse_factorization,
-                          krylov_on_old_factor=krylov)
+                          krylov_on_old_factor=krylov,
+                          **({} if refresh_contraction is None else dict(refresh_contraction=refresh_contraction)))
     start = None
     if coarse_tets:
         coarse = FaceProblem(load_model(build_builtin_face(target_tets=coarse_tets), comm))
@@ -52,6 +53,7 @@ def run_resolution(target_tets: int, expressions: list[str], degree: int,
     row = dict(target_tets=target_tets, tets=model.mesh.topology.index_map(3).size_global,
                dofs=3 * problem.V.dofmap.index_map.size_global, ranks=comm.size, degree=degree,
                reuse_factorization=reuse_factorization, krylov=krylov, coarse_tets=coarse_tets,
+               refresh_contraction=problem.solver.refresh_contraction,
                build_s=round(t_build, 2), load_s=round(t_load, 2), setup_s=round(t_setup, 2),
                solves={})
     for name in expressions:
@@ -103,6 +105,9 @@ def main():
     parser.add_argument("--krylov", action="store_true",
                         help="with --reuse-factorization: GMRES on the exact tangent preconditioned by the "
                              "old factor instead of refactorising when modified Newton slows")
+    parser.add_argument("--refresh-contraction", type=float, metavar="R",
+                        help="with --reuse-factorization: refactorise when an iteration cuts the residual "
+                             "less than this factor (FaceProblem's default if not given)")
     parser.add_argument("--coarse", type=int, metavar="TETS",
                         help="start every fine solve from the equilibrium of the built-in face at TETS "
                              "(face_dolfinx.coarse; Newton counts and factorisations are the fine model's)")
@@ -118,7 +123,7 @@ def main():
         return
     for target in args.tets:
         row = run_resolution(target, args.expressions, args.degree, args.reuse_factorization, args.coarse,
-                             args.krylov)
+                             args.krylov, args.refresh_contraction)
         if MPI.COMM_WORLD.rank == 0:
             print(json.dumps(row), flush=True)
 

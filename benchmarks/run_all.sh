@@ -19,7 +19,7 @@ done
 $PYTHON $FORWARD --collect runs/forward_table.md runs/forward_np*.jsonl
 
 # Tracking: solver variants at the paper's scale and against the naive loop; layouts of a whole take.
-$MPI2 $PYTHON benchmarks/tracking_speed.py --tets 400000 --frames 3 --variants naive reuse-1j reuse-1j-loose-gn2 krylov-1j-loose-gn2 > runs/tracking_400k.log
+$MPI2 $PYTHON benchmarks/tracking_speed.py --tets 400000 --frames 4 --variants fast reuse-1j-loose-gn2 naive > runs/tracking_400k.log
 $MPI2 $PYTHON benchmarks/tracking_speed.py --tets 50000 --frames 4 --variants naive fresh reuse-1j > runs/tracking_50k.log
 $PYTHON benchmarks/ranks_and_chunks.py --tets 20000 --frames 120 \
   --fit-options="--reuse-factorization --fresh-jacobians 1" > runs/ranks_and_chunks.log

@@ -16,6 +16,10 @@ then fits the same stretch of it with each ``--variants`` entry, one fresh probl
             2 Gauss-Newton steps per warm frame (not 3)
   krylov-1j-loose-gn2  the same, the old factor preconditioning GMRES on the exact tangent instead
             of refactorising when modified Newton slows (``krylov_on_old_factor``)
+  fast      ``fit --fast``: reuse-1j with 2 Gauss-Newton steps, Newton stopping at 1e-2 mm,
+            refactorising only when an iteration cuts the residual less than 2-fold, and Jacobians
+            from the equilibrium solve's last factor when it was made within 0.3 mm of the
+            equilibrium (only the remaining one per frame is exact)
 
 Per frame one JSON line (solver counters: factorisations, residual evaluations, GMRES iterations;
 phases: sensitivities = factorisation and the dX/dc solves, gn_solve =
@@ -49,6 +53,20 @@ VARIANTS = {  # name: (FaceProblem keywords, FitSettings fields, QuasistaticSolv
     "krylov-1j-loose-gn2": (dict(reuse_factorization=True, krylov_on_old_factor=True, **LOOSE),
                             dict(max_fresh_jacobians=1, max_gn_steps=2), {}),
 }
+
+
+def _fast_variant():
+    """``fit --fast`` (face_dolfinx.cli.FAST_FIT) as a variant."""
+    from face_dolfinx.cli import FAST_FIT
+    return (dict(reuse_factorization=FAST_FIT["reuse_factorization"],
+                 refresh_contraction=FAST_FIT["refresh_contraction"],
+                 newton_tolerance=FAST_FIT["newton_tolerance"]),
+            dict(max_fresh_jacobians=FAST_FIT["fresh_jacobians"],
+                 approximate_jacobian_within=FAST_FIT["approximate_jacobians"],
+                 max_gn_steps=FAST_FIT["gn_steps"]), {})
+
+
+VARIANTS["fast"] = _fast_variant()
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations")  # QuasistaticSolver's
 PHASES = ("sensitivities", "gn_solve", "equilibrium", "line_search")
 

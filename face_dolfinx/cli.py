@@ -25,6 +25,11 @@ import numpy as np
 
 log = logging.getLogger("face_dolfinx")
 
+# ``fit --fast``: measured at 404K tets on 2 cores (docs/performance.md, tracking_speed.py's
+# ``fast`` variant) against the naive loop, with the same marker and activation errors on a 60 Hz take.
+FAST_FIT = dict(reuse_factorization=True, refresh_contraction=0.5, fresh_jacobians=1,
+                approximate_jacobians=0.3, newton_tolerance=1e-2, gn_steps=2)
+
 
 def _setup_logging(folder: pathlib.Path | None = None, verbose: bool = False) -> None:
     """Log to the console and (optionally) ``folder``/run.log, from rank 0 only."""
@@ -262,15 +267,20 @@ def fit(model, args) -> None:
     truth = load_truth(truth_file) if truth_file.exists() else None
     if not args.newton_tolerance > 0:
         raise SystemExit(f"--newton-tolerance {args.newton_tolerance}: give a positive distance in mm")
+    if not 0 < args.refresh_contraction < 1:
+        raise SystemExit(f"--refresh-contraction {args.refresh_contraction}: give a factor between 0 and 1")
+    if not args.approximate_jacobians >= 0:
+        raise SystemExit(f"--approximate-jacobians {args.approximate_jacobians}: give a distance in mm, 0 or more")
     if args.fresh_jacobians is not None and args.fresh_jacobians < 0:
         raise SystemExit(f"--fresh-jacobians {args.fresh_jacobians}: give 0 or more fresh Jacobians per frame")
     settings = FitSettings(mode=args.mode, max_gn_steps=args.gn_steps,
-                           temporal_smoothness=args.smoothness, max_fresh_jacobians=args.fresh_jacobians)
+                           temporal_smoothness=args.smoothness, max_fresh_jacobians=args.fresh_jacobians,
+                           approximate_jacobian_within=args.approximate_jacobians)
     run = dict(capture=str(capture_path.resolve()), model=str(model.path), mode=args.mode,
                gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames,
                chunks=args.chunks, reuse_factorization=args.reuse_factorization,
-               newton_tolerance=args.newton_tolerance,
-               fresh_jacobians=args.fresh_jacobians)
+               newton_tolerance=args.newton_tolerance, refresh_contraction=args.refresh_contraction,
+               fresh_jacobians=args.fresh_jacobians, approximate_jacobians=args.approximate_jacobians)
     run.update(alignment=placement.method, neutral_frame=placement.neutral_frame,
                correspondence=str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None)
     alignment_record = json.dumps(placement.to_json(), indent=2)
@@ -299,7 +309,7 @@ def fit(model, args) -> None:
     group_comm = comm.Split(group, comm.rank) if groups > 1 else comm
     group_model = load_model(model.path, group_comm) if groups > 1 else model
     problem = FaceProblem(group_model, reuse_factorization=args.reuse_factorization,
-                          newton_tolerance=args.newton_tolerance)
+                          newton_tolerance=args.newton_tolerance, refresh_contraction=args.refresh_contraction)
     node_order = FileNodeOrder(problem.V)
     markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
     # A chunk is fitted from its first unfinished frame on, so that every frame after it starts
@@ -440,6 +450,7 @@ def main(argv=None) -> int:
 def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     """The options of a command line, with those of its --config file under them; and the PETSc
     options (-face_*). Wrong or missing options end it with a usage message (SystemExit 2)."""
+    from .solver import REFRESH_CONTRACTION
     parser = argparse.ArgumentParser(prog="face-dolfinx", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true")
@@ -538,8 +549,20 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "--reuse-factorization is the fast setting of docs/performance.md)")
     p.add_argument("--newton-tolerance", type=float, default=1e-8, metavar="MM",
                    help="Newton stops once a correction moves no node further than this (default "
-                        "1e-8 mm; 1e-4 mm changed no fitted marker or activation error in "
-                        "docs/performance.md and saves iterations)")
+                        "1e-8 mm; 1e-4 and 1e-3 mm changed no fitted marker or activation error in "
+                        "docs/performance.md and save iterations)")
+    p.add_argument("--refresh-contraction", type=float, default=REFRESH_CONTRACTION, metavar="R",
+                   help=f"with --reuse-factorization: refactorise when a Newton iteration cuts the "
+                        f"residual by less than this factor (default {REFRESH_CONTRACTION})")
+    p.add_argument("--approximate-jacobians", type=float, default=0.0, metavar="MM",
+                   help="a Jacobian may use the last factor of the equilibrium solve if it was made at "
+                        "a state this close to the equilibrium, instead of a new factorisation "
+                        "(default 0: always the exact tangent)")
+    p.add_argument("--fast", action="store_true",
+                   help="the fast setting of docs/performance.md for takes at capture rate: "
+                        + " ".join(f"--{k.replace('_', '-')}" + ("" if v is True else f" {v}")
+                                   for k, v in FAST_FIT.items())
+                        + " (options given here win)")
     p.add_argument("--chunks", type=int, default=1,
                    help="split the take into independent chunks (each starts from rest); under "
                         "mpirun the ranks share them out")
@@ -551,11 +574,19 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     for command_parser in sub.choices.values():
         command_parser.add_argument("--config", help="TOML file of options (docs/cli.md); flags given here win")
     args, petsc_args = parser.parse_known_args(argv)
+    # Precedence: options given here, then the --config file, then fit --fast, then the defaults.
+    config = None
     if args.config:
         from .config import option_defaults
-        shared, own = option_defaults(args.config, args.command, parser, sub.choices)
-        parser.set_defaults(**shared)
-        sub.choices[args.command].set_defaults(**own)
+        config = option_defaults(args.config, args.command, parser, sub.choices)
+    for fast in (False, True):
+        if fast and not (args.command == "fit" and args.fast):
+            break
+        if fast:
+            sub.choices["fit"].set_defaults(**FAST_FIT)
+        if config:
+            parser.set_defaults(**config[0])
+            sub.choices[args.command].set_defaults(**config[1])
         args, petsc_args = parser.parse_known_args(argv)
     for command, positional in (("fit", "capture"), ("simulate", "expressions")):
         if args.command == command and not getattr(args, positional):

@@ -61,9 +61,14 @@ class FitSettings:
     # chosen from the damage study's gaps, docs/fitting.md).
     observability_threshold: float = 0.1
     reuse_jacobian: bool = True         # first step of a frame: the last frame's J, turned with the head
-    # Fresh Jacobians per frame after that first step (None: one per step); later steps reuse the
-    # newest, turned with the head. A stale J whose step fails is always replaced.
+    # Exact Jacobians per frame after that first step (None: one per step); later steps reuse the
+    # newest, turned with the head, or an approximate one. An inexact J whose step fails is
+    # always replaced by an exact one.
     max_fresh_jacobians: int | None = None
+    # mm: a fresh Jacobian may use the newest factor of the equilibrium solve if it was made at a
+    # state this close to the equilibrium (an approximate tangent: the step's direction, not the
+    # fit's optimum, depends on it) instead of factorising again. 0: always the exact tangent.
+    approximate_jacobian_within: float = 0.0
     # Exact mode: trust region on the activation step (max |da|), adapted within a frame by how
     # well the linear prediction matched (doubles on agreement, halves otherwise). Noise in
     # poorly identified muscle combinations otherwise moves activations by 0.5 in one step, and
@@ -164,10 +169,12 @@ class FaceFitter:
         return value, simulated
 
     # -- Jacobian -----------------------------------------------------------------------------
-    def _columns(self, state: ControlState) -> tuple[np.ndarray, np.ndarray, float]:
-        """dX/dc as dof arrays (k, ndofs), the marker Jacobian (k, markers, 3) and the time."""
+    def _columns(self, state: ControlState, approximate_within: float) -> tuple[np.ndarray, np.ndarray, float, bool]:
+        """dX/dc as dof arrays (k, ndofs), the marker Jacobian (k, markers, 3), the time and
+        whether it is exact (from the tangent at this state, not at one ``approximate_within`` mm
+        away)."""
         start = time.perf_counter()
-        self.sensitivity.factor()
+        exact_jacobian = self.sensitivity.factor(reuse_within=approximate_within) == 0.0
         columns = [self.sensitivity.activation_columns()]
         cranium_marker_columns = None
         if self.settings.fit_head:
@@ -193,7 +200,12 @@ class FaceFitter:
         if cranium_marker_columns is not None:
             n = self.problem.num_muscles
             marker[n:n + len(cranium_marker_columns)] = cranium_marker_columns
-        return dofs, marker, time.perf_counter() - start
+        return dofs, marker, time.perf_counter() - start, exact_jacobian
+
+    def _close_factor(self) -> bool:
+        """The newest factor may serve a fresh Jacobian (``approximate_jacobian_within``)."""
+        within = self.settings.approximate_jacobian_within
+        return within > 0.0 and self.problem.solver.factor_distance() <= within
 
     def _reused_columns(self, state: ControlState):
         """The cached Jacobian turned by the change of the head's rotation since it was computed
@@ -361,19 +373,22 @@ class FaceFitter:
         objective, simulated = self._objective(state, targets, present)
         initial_rms = float(np.sqrt(np.mean(np.sum((simulated - targets)[present] ** 2, axis=1))))
         fresh = not (settings.reuse_jacobian and self._cached_jacobian is not None)
-        fresh_jacobians = 0
+        fresh_jacobians = 0      # exact ones so far
+        retry_exact = False      # a step from an inexact Jacobian failed
         converged_objective = settings.marker_tolerance**2 * max(1, int(present.sum()))
         steps = 0
         marker_columns = None
         while steps < max_steps and objective > converged_objective:
             steps += 1
             base_u, base_controls = self.problem.u.x.array.copy(), self.problem.controls.copy()
-            if fresh:
-                dofs, marker_columns, seconds = self._columns(state)
+            if fresh or self._close_factor():
+                within = 0.0 if retry_exact else settings.approximate_jacobian_within
+                dofs, marker_columns, seconds, exact_jacobian = self._columns(state, within)
                 self._cached_jacobian = (state.copy(), dofs, marker_columns)
-                fresh_jacobians += 1
+                fresh_jacobians += int(exact_jacobian)
             else:
                 dofs, marker_columns, seconds = self._reused_columns(state)
+                exact_jacobian = False
             phases["sensitivities"] += seconds
             t0 = time.perf_counter()
             simulated = self.markers.positions(base_u, state.cranium)
@@ -404,12 +419,13 @@ class FaceFitter:
                 accepted, new_objective = self._line_search(state, candidate, base_u, targets, present,
                                                             objective, candidate_objective)
                 phases["line_search"] += time.perf_counter() - t0
-            if accepted is None:  # no decrease along the step: converged, stuck, or a stale J
+            if accepted is None:  # no decrease along the step: converged, stuck, or an inexact J
                 self.problem.adopt(base_controls, base_u)
-                if not fresh:
-                    fresh = True
+                if not exact_jacobian:
+                    fresh = retry_exact = True
                     continue
                 break
+            retry_exact = False
             decrease = (objective - new_objective) / max(objective, 1e-300)
             state, objective = accepted, new_objective
             limit = settings.max_fresh_jacobians if self.frames_done else None  # not from rest

@@ -24,7 +24,7 @@ import dolfinx.fem.petsc as fem_petsc
 
 import forms
 from .bones import AffineMap
-from .solver import InversionGuard, QuasistaticSolver, SolveReport, compile_form
+from .solver import REFRESH_CONTRACTION, InversionGuard, QuasistaticSolver, SolveReport, compile_form
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +43,11 @@ class Controls:
 
     def copy(self) -> "Controls":
         return Controls(self.activations.copy(), self.cranium, self.jaw)
+
+    def same_as(self, other: "Controls") -> bool:
+        """The same values exactly."""
+        return (np.array_equal(self.activations, other.activations) and self.cranium.same_as(other.cranium)
+                and self.jaw.same_as(other.jaw))
 
 
 @dataclass
@@ -138,6 +143,9 @@ class FaceProblem:
     newton_tolerance : mm; Newton has converged once a correction moves no dof further than this
         (``QuasistaticSolver.step_tolerance``). 1e-4 mm changed no fitted marker or activation
         error in docs/performance.md.
+    refresh_contraction : with ``reuse_factorization``, refactorise when a Newton iteration cuts the
+        residual by less than this factor (0.25; 0.5 saved factorisations at 404K tets, where one
+        costs as much as a dozen iterations, docs/performance.md).
     inversion_guard : shorten Newton steps that would flatten a cell (``solver.InversionGuard``);
         off only to measure what the guard buys (``benchmarks/stability.py``; solves without a
         ``guess``, which the guard pulls back).
@@ -146,7 +154,7 @@ class FaceProblem:
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
                  petsc_options: dict | None = None, reuse_factorization: bool = False,
                  krylov_on_old_factor: bool = False, newton_tolerance: float = 1e-8,
-                 inversion_guard: bool = True):
+                 refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True):
         self.model = model
         mesh = self.mesh = model.mesh
         self.comm = mesh.comm
@@ -188,7 +196,8 @@ class FaceProblem:
                                         inversion_guard=InversionGuard(self.V) if inversion_guard else None,
                                         reuse_factorization=reuse_factorization,
                                         krylov_on_old_factor=krylov_on_old_factor,
-                                        step_tolerance=newton_tolerance)
+                                        step_tolerance=newton_tolerance, keep_packed_coefficients=True)
+        self.solver.refresh_contraction = refresh_contraction
         self.controls = Controls(np.zeros(self.num_muscles), AffineMap(), AffineMap())
         self._set_controls(self.controls)
 
@@ -245,9 +254,10 @@ class FaceProblem:
         factorisation."""
         self.u.x.array[:] = displacement
         self._set_controls(controls.copy())
-        self.solver.unknown_replaced()
 
     def _set_controls(self, controls: Controls) -> None:
+        if not controls.same_as(self.controls):
+            self.solver.controls_changed()
         self._scatter(controls.activations, self.slots.activation)
         values = self.bone_displacement.x.array.reshape(-1, 3)
         values[self.bone_blocks] = (self.bone_positions(controls.cranium, controls.jaw)

@@ -5,8 +5,12 @@ At an equilibrium f(X(c), c) = 0, with K the tangent (identity rows on Dirichlet
   bone-driven b_i   K dX/db_i = -K_UC dX^C/db_i, and dX^C/db_i on C   (eq. 6, by lifting)
   cranium frame     dX/db_i = (dM_c/db_i) y + dt_c/db_i,  y = M_c^-1 (x - t_c)   (analytic)
 One factorisation of K serves every right-hand side; it is the equilibrium solver's own (same
-matrix, same KSP), so with factorisation reuse the next Newton solves start from it too.
+matrix, same KSP), so with factorisation reuse the next Newton solves start from it too. A caller
+that can live with an approximate K (Gauss-Newton directions) may keep a factor the Newton solve
+made at a state close to the equilibrium instead of factorising again.
 """
+import math
+
 from petsc4py import PETSc
 import numpy as np
 from dolfinx import fem
@@ -23,18 +27,30 @@ class EquilibriumSensitivity:
         self._solution = problem.u.vector.duplicate()
         self._lift = fem.Function(problem.V)
         self._lift_bc = fem.dirichletbc(self._lift, problem.bone_blocks)
+        self._accepted_distance = 0.0
 
-    def factor(self) -> None:
-        """Assemble and factorise the tangent at the current shape."""
+    def factor(self, reuse_within: float = 0.0) -> float:
+        """Set up the tangent at the current shape for the solves that follow: the solver's newest
+        factor if it holds the tangent of these controls at a state no further than
+        ``reuse_within`` (mm, per dof) from this one, else a fresh assembly and factorisation.
+        Returns the distance of the factor's state from this one (0: the exact tangent)."""
+        self._accepted_distance = reuse_within
+        distance = self.solver.factor_distance()
+        if math.isfinite(distance) and distance <= reuse_within:
+            return distance
         self.solver.factorize()
+        return 0.0
 
     def _solve_all(self, fill_rhs, count: int) -> np.ndarray:
         """K^-1 b_j for j < count, ``fill_rhs(j)`` putting b_j into ``self._rhs``: (count, local dofs
         incl. ghosts). With a direct factor, all right-hand sides go to MUMPS as one dense block
         (20K face, 32 muscles: 0.13 s against 1.0 s one by one); otherwise one Krylov solve each."""
-        if not self.solver.factor_is_current:
-            # An old factor (factorisation reuse) would give the sensitivities of an older state.
-            raise RuntimeError("the tangent at the current equilibrium is not set up: call factor() first")
+        distance = self.solver.factor_distance()
+        if not (math.isfinite(distance) and distance <= self._accepted_distance):
+            # An older factor (factorisation reuse, a later solve) gives the sensitivities of
+            # another state.
+            raise RuntimeError(f"the factor holds the tangent of a state {distance:.3g} mm from the current "
+                               f"one ({self._accepted_distance:g} accepted): call factor() first")
         owned = self._rhs.getLocalSize()
         pc = self.solver.snes.getKSP().getPC()
         block = pc.getType() in ("cholesky", "lu") and count > 1

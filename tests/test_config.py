@@ -5,7 +5,7 @@ import pathlib
 from mpi4py import MPI
 import pytest
 
-from face_dolfinx.cli import main, parse_arguments
+from face_dolfinx.cli import FAST_FIT, main, parse_arguments
 
 
 @pytest.fixture
@@ -45,6 +45,17 @@ tets = 9000
     assert (args.capture, args.out) == ("other.trc", "here")
     args, _ = parse_arguments(["build", "--config", str(config)])
     assert (args.tets, args.out) == (9000, "results/shared")
+    # fit --fast, on the command line or in the file, fills in what neither of them gives.
+    from_flag, _ = parse_arguments(["fit", "--config", str(config), "--fast", "--newton-tolerance", "1e-3"])
+    fast_file = write(shared_tmp / "fast.toml", "[fit]\ncapture = 't.trc'\nfast = true\ngn-steps = 5\n"
+                                                "newton-tolerance = 1e-3\n")
+    from_file, _ = parse_arguments(["fit", "--config", str(fast_file)])
+    for args in (from_flag, from_file):
+        assert (args.gn_steps, args.newton_tolerance) == (5, 1e-3)
+        assert (args.reuse_factorization, args.refresh_contraction, args.approximate_jacobians) == \
+            (FAST_FIT["reuse_factorization"], FAST_FIT["refresh_contraction"], FAST_FIT["approximate_jacobians"])
+    args, _ = parse_arguments(["fit", "take.trc"])
+    assert (args.reuse_factorization, args.approximate_jacobians, args.gn_steps) == (False, 0.0, 3)
     args, _ = parse_arguments(["build", "--config", str(config), "--tets", "3000"])
     assert args.tets == 3000
 

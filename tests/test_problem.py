@@ -206,3 +206,28 @@ def test_continuation_gives_up_only_when_its_step_is_too_small():
     with pytest.raises(EquilibriumError, match="beyond 0.0000 .* step of 0.5 of the way failed"):
         p.solver.solve_continuation(set_controls, max_halvings=1)
     assert reached["load"] == 0.0
+
+
+def test_kept_coefficient_data_follow_the_unknown_and_repack_when_stale(problem):
+    """``PackedCoefficients`` (which FaceProblem's solver assembles with) reproduces DOLFINx's
+    own packing whenever the unknown changes, and needs ``stale`` when another coefficient does
+    (the owner's controls_changed())."""
+    from dolfinx.fem.assemble import pack_coefficients
+    from face_dolfinx.solver import PackedCoefficients
+    form = problem.solver.residual_form
+    kept = PackedCoefficients(form, problem.u)
+    rng = np.random.default_rng(4)
+    saved_u = problem.u.x.array.copy()
+    for _ in range(2):  # the first call packs everything, the second refreshes the unknown only
+        problem.u.x.array[:] = rng.uniform(-0.1, 0.1, problem.u.x.array.size)
+        packed, reference = kept.packed(), pack_coefficients(form)
+        assert all(np.array_equal(packed[key], reference[key]) for key in reference)
+    activation = problem.slots.activation[0]
+    saved_activation = activation.x.array.copy()
+    activation.x.array[:] = 0.7
+    reference = pack_coefficients(form)
+    assert not all(np.array_equal(kept.packed()[key], reference[key]) for key in reference)
+    kept.stale = True
+    assert all(np.array_equal(kept.packed()[key], reference[key]) for key in reference)
+    activation.x.array[:] = saved_activation
+    problem.u.x.array[:] = saved_u

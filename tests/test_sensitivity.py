@@ -124,3 +124,47 @@ def test_columns_need_the_tangent_of_the_current_state(setup):
         s.sensitivity.activation_columns()
     s.sensitivity.factor()
     assert s.sensitivity.activation_columns().shape[0] == s.problem.num_muscles
+
+
+def test_a_nearby_factor_serves_approximate_columns_without_factorising():
+    """``factor(reuse_within=d)`` keeps the factor of a state at most d mm away (of the same
+    controls): no factorisation, and columns within a few per cent of the exact ones but not
+    equal to them. A farther state makes the columns refuse; a change of controls forces a new
+    factorisation whatever d."""
+    problem = FaceProblem(slab_model())
+    problem.solve(activations=ACTIVATIONS, cranium=CRANIUM, jaw=jaw_pose(SLAB_JAW, *TMJ))
+    sensitivity = EquilibriumSensitivity(problem)
+    solver = problem.solver
+    assert sensitivity.factor() == 0.0 and solver.factor_distance() == 0.0
+    equilibrium = problem.u.x.array.copy()
+    # A smooth displacement of at most 0.05 mm stands in for the distance to Newton's last factor.
+    x = problem.dof_coordinates
+    problem.u.x.array[:] = equilibrium + (0.05 * np.sin(x[:, 0] / 7.0)[:, None] * [1.0, 0.5, 0.0]).reshape(-1)
+    distance = solver.factor_distance()
+    assert 0.01 < distance <= 0.05
+    factorizations = solver.factorizations
+    assert sensitivity.factor(reuse_within=0.1) == pytest.approx(distance)
+    assert solver.factorizations == factorizations
+    approximate = sensitivity.activation_columns()
+    sensitivity.factor(reuse_within=0.001)  # too far: a fresh factor of this state
+    assert solver.factorizations == factorizations + 1 and solver.factor_distance() == 0.0
+    exact = sensitivity.activation_columns()
+    owned = problem.V.dofmap.index_map.size_local * 3
+    difference, size = (MPI.COMM_WORLD.allreduce(np.sum(a[:, :owned] ** 2, axis=1), op=MPI.SUM)
+                        for a in (approximate - exact, exact))
+    relative = np.sqrt(difference / size)
+    assert np.all(relative > 1e-6) and np.all(relative < 0.05)
+
+    problem.u.x.array[:] += 1.0  # 1 mm from the factor's state, beyond what factor() accepted
+    with pytest.raises(RuntimeError, match="call factor"):
+        sensitivity.activation_columns()
+    problem.u.x.array[:] = equilibrium
+    problem.solve(activations=0.9 * ACTIVATIONS)
+    problem.adopt(problem.controls.copy(), equilibrium)  # the same controls: the factor still counts
+    assert np.isfinite(solver.factor_distance())
+    controls = problem.controls.copy()
+    controls.activations = ACTIVATIONS.copy()
+    problem.adopt(controls, equilibrium)
+    assert solver.factor_distance() == np.inf
+    assert sensitivity.factor(reuse_within=1e9) == 0.0
+    assert solver.factorizations > factorizations + 1
