@@ -277,8 +277,8 @@ class QuasistaticSolver:
         # Makes MUMPS factorise without numerical pivoting (SYM = 1): 4.4-5.0 s instead of 5.5 s at
         # 404K tets, same solve residual (1e-12). Off equilibrium the tangent may have a few
         # negative pivots (2 of 237K seen mid-Newton on the pucker), which this LDL^T factorises
-        # as well. A zero pivot would fail the linear solve, i.e. the Newton solve, which the
-        # continuation fallback then takes over (not seen in any test or benchmark).
+        # as well. A zero pivot fails the factorisation (seen once, in a 404K jaw opening's
+        # fallback): newton() then drops the flag (_factorise_with_pivoting).
         self.tangent.setOption(PETSc.Mat.Option.SPD, True)
         self._solution = unknown.vector.duplicate()
         self._start = unknown.vector.duplicate()  # where the current Newton solve began
@@ -506,21 +506,36 @@ class QuasistaticSolver:
         """One SNES solve from the current unknown; Dirichlet values are reached by the Newton steps."""
         self._refreshed_in_solve = False
         self.unknown.vector.copy(self._start)
-        self._start.copy(self._solution)
-        self.snes.solve(None, self._solution)
-        self.linear_iterations += self.snes.getLinearSolveIterations()
-        reason = self.snes.getConvergedReason()
-        if reason < 0 and self.reuse_factorization and not self._refreshed_in_solve:
+        reason = self._solve_from_start()
+        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE:
+            self._factorise_with_pivoting()
+            reason = self._solve_from_start()
+        elif reason < 0 and self.reuse_factorization and not self._refreshed_in_solve:
             # Only the old factor was used and Newton failed: retry once with fresh tangents.
             self._has_factor = False
-            self._start.copy(self._solution)
-            self.snes.solve(None, self._solution)
-            self.linear_iterations += self.snes.getLinearSolveIterations()
-            reason = self.snes.getConvergedReason()
+            reason = self._solve_from_start()
         self._set_unknown(self._solution)
         if reason > 0 and self.bc_error() > 1e-8:
             return False, self.snes.getIterationNumber(), "Dirichlet values not reached"
         return reason > 0, self.snes.getIterationNumber(), _reason_name(reason)
+
+    def _solve_from_start(self) -> int:
+        self._start.copy(self._solution)
+        self.snes.solve(None, self._solution)
+        self.linear_iterations += self.snes.getLinearSolveIterations()
+        return self.snes.getConvergedReason()
+
+    def _factorise_with_pivoting(self) -> None:
+        """After a failed factorisation (a zero pivot of a tangent factorised without pivoting,
+        seen mid-Newton at 404K tets): MUMPS keeps its error, and PETSc then skips every later
+        numerical factorisation of the same analysis, so the preconditioner is reset (a new
+        analysis) and the tangent is factorised as symmetric indefinite, with pivoting, from now on."""
+        if self.comm.rank == 0:
+            log.warning("the tangent's factorisation failed (zero pivot without pivoting): factorising "
+                        "it with pivoting from now on and retrying the Newton solve")
+        self.tangent.setOption(PETSc.Mat.Option.SPD, False)
+        self.snes.getKSP().getPC().reset()
+        self._has_factor = False
 
     def bc_error(self, x: PETSc.Vec | None = None) -> float:
         """Largest distance of a Dirichlet dof of ``x`` (default: the unknown) from its

@@ -231,3 +231,32 @@ def test_kept_coefficient_data_follow_the_unknown_and_repack_when_stale(problem)
     assert all(np.array_equal(kept.packed()[key], reference[key]) for key in reference)
     activation.x.array[:] = saved_activation
     problem.u.x.array[:] = saved_u
+
+
+@pytest.mark.parametrize("reuse", [False, True])
+def test_a_failed_factorisation_is_followed_by_one_with_pivoting(reuse, caplog):
+    """A factorisation that fails inside Newton (here: the first tangent made singular) makes
+    PETSc skip every later one of the same analysis; the solver resets the preconditioner,
+    factorises with pivoting from then on and reaches the equilibrium of an unbroken problem (with
+    factorisation reuse too, where Newton would otherwise start from the failed factor)."""
+    activations = np.array([0.6, 0.3, 0.8])
+    reference = FaceProblem(slab_model())
+    reference.solve(activations=activations)
+    problem = FaceProblem(slab_model(), reuse_factorization=reuse)
+    solver = problem.solver
+    assemble, assembled = solver._assemble_tangent_matrix, []
+
+    def singular_first(A):
+        assemble(A)
+        if not assembled:
+            A.zeroEntries()
+            A.assemble()
+        assembled.append(A)
+
+    solver._assemble_tangent_matrix = singular_first
+    assert problem.solve(activations=activations).converged
+    assert len(assembled) > 1
+    assert MPI.COMM_WORLD.rank != 0 or "factorising it with pivoting" in caplog.text
+    # Each problem has its own distribution under MPI: compare numbering-free quantities.
+    assert problem.u.vector.norm() == pytest.approx(reference.u.vector.norm(), rel=1e-10)
+    assert problem.energy() == pytest.approx(reference.energy(), rel=1e-10)
