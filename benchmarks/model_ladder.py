@@ -62,6 +62,16 @@ VARIANTS = {
              dict(reuse_factorization=True)),
     "paper": (dict(mode="paper"), {}, {}),
 }
+
+
+def _fit_fast_variant():
+    """``fit --fast`` (face_dolfinx.cli.FAST_FIT), the production setting of docs/performance.md."""
+    from face_dolfinx.cli import fast_fit_options
+    problem_options, settings = fast_fit_options()
+    return settings, {}, problem_options
+
+
+VARIANTS["fit-fast"] = _fit_fast_variant()
 LINEAR_RUNGS = ("choe-ko", "choe-ko-kabsch", "choe-ko-refined", "linearized")
 
 
@@ -127,7 +137,7 @@ def run(args) -> None:
         out.parent.mkdir(parents=True, exist_ok=True)
     truth_tets = args.truth_tets or max(args.tets)
     linear_tets = args.linear_tets or truth_tets
-    variant_tets = args.variant_tets or min(args.tets)
+    variant_tets = args.variant_tets or [min(args.tets)]
     models = {}
 
     def model_at(tets):
@@ -234,7 +244,7 @@ def run(args) -> None:
         del problem
 
     fe_runs = [("fe", tets, {}, {}, {}) for tets in args.tets] if "fe" in args.rungs else []
-    fe_runs += [(f"fe-{name}", variant_tets, *VARIANTS[name]) for name in args.variants]
+    fe_runs += [(f"fe-{name}", tets, *VARIANTS[name]) for name in args.variants for tets in variant_tets]
     for method, tets, settings, petsc_options, problem_options in fe_runs:
         model = model_at(tets)
         for scenario, (positions, truth) in takes.items():
@@ -278,9 +288,9 @@ def aggregate(rows) -> list[dict]:
     per warm frame (FE rungs), failures. A rung with no finished frame gets NaN measures."""
     groups = {}
     for row in rows:
-        groups.setdefault((row["method"], row["tets"]), []).append(row)
+        groups.setdefault((row["method"], row["tets"], row.get("ranks", 1)), []).append(row)
     table = []
-    for (method, tets), group in groups.items():
+    for (method, tets, ranks), group in groups.items():
         done = [r for r in group if r["seconds"]]
 
         def frames(key, rows=done):
@@ -296,7 +306,7 @@ def aggregate(rows) -> list[dict]:
             key=lambda e: e[2])
         counted = [r for r in done if r.get("factorizations")]
         table.append(dict(
-            method=method, tets=tets,
+            method=method, tets=tets, ranks=ranks,
             seconds=warm("seconds"),
             build_seconds=float(np.nanmean([r["build_seconds"] for r in group]))
             if any(np.isfinite(r["build_seconds"]) for r in group) else math.nan,
@@ -321,12 +331,16 @@ def _number(value, spec) -> str:
 
 def collect(paths) -> str:
     rows = load_rows(paths)
-    lines = ["| method | tets | s/frame | factorisations/frame | build s | marker RMS mm | lips RMS mm "
+    truths = sorted({r["truth_tets"] for r in rows})
+    if len(truths) > 1:
+        raise SystemExit(f"rows fitted against different truths ({', '.join(map(str, truths))} tets): "
+                         "collect each truth's rows on their own")
+    lines = ["| method | tets | ranks | s/frame | factorisations/frame | build s | marker RMS mm | lips RMS mm "
              "| FE resim RMS mm | activation RMS | activation max | jaw err deg | worst (scenario:frame) "
              "| flagged | frames | failed |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for e in aggregate(rows):
-        lines.append(f"| {e['method']} | {e['tets']} | {_number(e['seconds'], '.3g')} "
+        lines.append(f"| {e['method']} | {e['tets']} | {e['ranks']} | {_number(e['seconds'], '.3g')} "
                      f"| {_number(e['factorizations'], '.1f')} | {_number(e['build_seconds'], '.3g')} "
                      f"| {_number(e['marker_rms'], '.3f')} | {_number(e['lip_rms'], '.3f')} "
                      f"| {_number(e['resimulated_rms'], '.3f')} | {_number(e['activation_rms'], '.3f')} "
@@ -336,12 +350,12 @@ def collect(paths) -> str:
     lines += ["", "Per scenario (s/frame warm / marker RMS mm / lips RMS mm / activation RMS / "
               "activation max / jaw opening err deg; FAILED = the rung stopped, after the frames shown):", ""]
     scenarios = sorted({r["scenario"] for r in rows})
-    lines += ["| method | tets | " + " | ".join(scenarios) + " |", "|---|---|" + "---|" * len(scenarios)]
-    cells = {(r["method"], r["tets"], r["scenario"]): r for r in rows}
+    lines += ["| method | tets | ranks | " + " | ".join(scenarios) + " |", "|---|---|---|" + "---|" * len(scenarios)]
+    cells = {(r["method"], r["tets"], r.get("ranks", 1), r["scenario"]): r for r in rows}
     for e in aggregate(rows):
         entries = []
         for scenario in scenarios:
-            r = cells.get((e["method"], e["tets"], scenario))
+            r = cells.get((e["method"], e["tets"], e["ranks"], scenario))
             if r is None:
                 entries.append("")
                 continue
@@ -354,7 +368,7 @@ def collect(paths) -> str:
             if r.get("failure"):
                 text += f" FAILED after {len(r['seconds'])} frames"
             entries.append(text)
-        lines.append(f"| {e['method']} | {e['tets']} | " + " | ".join(entries) + " |")
+        lines.append(f"| {e['method']} | {e['tets']} | {e['ranks']} | " + " | ".join(entries) + " |")
     return "\n".join(lines)
 
 
@@ -394,7 +408,8 @@ def plot(paths, prefix: str) -> list[pathlib.Path]:
         axes.scatter(points[front, 0], points[front, 1], color="tab:red", zorder=3)
         for e, (x, y) in zip(shown, points):
             failed = f" (failed {len(e['failed'])}/{len(e['failed']) + e['scenarios']})" if e["failed"] else ""
-            axes.annotate(f"{e['method']} {round(e['tets'] / 1000)}K{failed}", (x, y), textcoords="offset points",
+            ranks = f" {e['ranks']} ranks" if e["ranks"] > 1 else ""
+            axes.annotate(f"{e['method']} {round(e['tets'] / 1000)}K{ranks}{failed}", (x, y), textcoords="offset points",
                           xytext=(4, 3), fontsize=7)
         if key == "marker_rms":
             for level in noise:  # a fit below the noise is fitting the noise
@@ -418,7 +433,8 @@ def main():
     parser.add_argument("--tets", type=int, nargs="+", default=[5000, 10000], help="FE rung resolutions")
     parser.add_argument("--truth-tets", type=int, help="resolution of the takes' truth (default: max --tets)")
     parser.add_argument("--linear-tets", type=int, help="model the linear rungs come from (default: truth)")
-    parser.add_argument("--variant-tets", type=int, help="resolution of the solver variants (default: min --tets)")
+    parser.add_argument("--variant-tets", type=int, nargs="+",
+                        help="resolutions of the solver variants (default: min --tets)")
     parser.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--rungs", nargs="*", default=["linear", "fe"], choices=["linear", "fe"],
                         help="give none (--rungs alone) to run only --variants")

@@ -1,7 +1,7 @@
 """Tracking a whole take: 1 rank against 2, one sequential pass against frame-parallel chunks.
 
-Runs ``run.py fit`` on one synthetic take (speech, 60 Hz, 0.5 mm noise, head motion) of the
-built-in face in each layout below, one after the other, and prints the wall time per frame
+Runs ``run.py fit`` on one synthetic take (speech, 60 Hz, 0.5 mm noise, head motion; optionally
+a stretch of a longer take, which moves at capture speed) of the built-in face in each layout below, one after the other, and prints the wall time per frame
 (everything included: set-up, the cold first frame of each chunk, writing), its ratio to the
 first layout, the marker RMS and the activation error against the truth:
 
@@ -13,6 +13,7 @@ A chunk's first frame starts from rest, not from the previous frame: it costs th
 Gauss-Newton steps and its fit can differ from the one-pass fit there.
 
     python benchmarks/ranks_and_chunks.py --tets 20000 --frames 120 --fit-options="--reuse-factorization --fresh-jacobians 1"
+    python benchmarks/ranks_and_chunks.py --tets 400000 --frames 24 --take-frames 240 --first-frame 80 --fit-options=--fast
 """
 import argparse
 import csv
@@ -28,10 +29,15 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 LAYOUTS = {"1 rank": (1, 1), "2 ranks": (2, 1), "2 ranks, 2 chunks": (2, 2)}
 
 
-def run(command: list[str]) -> float:
+def run(command: list[str]) -> tuple[float, float]:
+    """Wall seconds of a command, and the peak resident memory (GB) of its largest process (a
+    rank: mpirun reaps its ranks, so their usage reaches us through it)."""
     began = time.perf_counter()
-    subprocess.run(command, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - began
+    process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL)
+    _, status, usage = os.wait4(process.pid, 0)
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise subprocess.CalledProcessError(os.waitstatus_to_exitcode(status), command)
+    return time.perf_counter() - began, usage.ru_maxrss / 1024**2
 
 
 def frame_errors(folder: pathlib.Path) -> tuple[float, float]:
@@ -46,16 +52,23 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tets", type=int, default=20_000)
     parser.add_argument("--frames", type=int, default=120, help="frames of the take (all are fitted)")
+    parser.add_argument("--take-frames", type=int,
+                        help="synthesise --frames frames of a take this long (default: --frames), so that a "
+                             "short take moves at capture speed (run.py synth --take-frames)")
+    parser.add_argument("--first-frame", type=int, default=0, help="with --take-frames: first frame of the stretch")
     parser.add_argument("--fit-options", default="", help="extra options for run.py fit")
     parser.add_argument("--out", default="runs/ranks_and_chunks", help="folder for the take and the fits")
     parser.add_argument("--layouts", nargs="+", default=list(LAYOUTS), choices=tuple(LAYOUTS))
     args = parser.parse_args()
     out = ROOT / args.out
     python = [sys.executable, str(ROOT / "run.py")]
-    take = out / f"take_{args.tets}_{args.frames}.trc"
-    if not take.exists():
-        run(python + ["synth", "--tets", str(args.tets), "--frames", str(args.frames),
-                      "--noise", "0.5", "--out", str(take)])
+    take_frames = args.take_frames or args.frames
+    stretch = f"_of{take_frames}from{args.first_frame}" if args.take_frames else ""
+    take = out / f"take_{args.tets}_{args.frames}{stretch}.trc"
+    if not take.exists():  # not timed
+        run(["mpirun", "-n", "2"] + python + [
+            "synth", "--tets", str(args.tets), "--frames", str(args.frames), "--take-frames", str(take_frames),
+            "--first-frame", str(args.first_frame), "--noise", "0.5", "--out", str(take)])
     rows = []
     for name in args.layouts:
         ranks, chunks = LAYOUTS[name]
@@ -63,20 +76,23 @@ def main():
         command = ["mpirun", "-n", str(ranks)] + python + [
             "fit", str(take), "--tets", str(args.tets), "--chunks", str(chunks), "--out", str(folder),
             "--overwrite", *shlex.split(args.fit_options)]
-        seconds = run(command)
+        seconds, memory = run(command)
         rms, activation_error = frame_errors(folder)
         rows.append(dict(layout=name, ranks=ranks, chunks=chunks, tets=args.tets, frames=args.frames,
+                         take_frames=take_frames, first_frame=args.first_frame,
                          fit_options=args.fit_options, wall_s=round(seconds, 1),
                          s_per_frame=round(seconds / args.frames, 3), marker_rms_mm=round(rms, 3),
-                         activation_error_max=round(activation_error, 3)))
+                         activation_error_max=round(activation_error, 3),
+                         peak_memory_gb_per_process=round(memory, 2)))
         print(json.dumps(rows[-1]), flush=True)
-    print(f"\n{args.frames} frames, {args.tets} tets, fit options: {args.fit_options or '(defaults)'}")
-    print("| layout | wall s | s / frame | ratio to first | marker RMS mm | max activation error |")
-    print("|---|---|---|---|---|---|")
+    print(f"\n{args.frames} frames (from {args.first_frame} of a {take_frames}-frame take), {args.tets} tets, "
+          f"fit options: {args.fit_options or '(defaults)'}")
+    print("| layout | wall s | s / frame | ratio to first | marker RMS mm | max activation error | peak GB per process |")
+    print("|---|---|---|---|---|---|---|")
     for row in rows:
         print(f"| {row['layout']} | {row['wall_s']} | {row['s_per_frame']} | "
               f"{row['s_per_frame'] / rows[0]['s_per_frame']:.2f} | {row['marker_rms_mm']} | "
-              f"{row['activation_error_max']} |")
+              f"{row['activation_error_max']} | {row['peak_memory_gb_per_process']} |")
 
 
 if __name__ == "__main__":

@@ -877,9 +877,10 @@ def plot(paths, prefix: str) -> list[pathlib.Path]:
             bottom.plot(x, [r["activation_rms"] for r in mine], "o-", color="tab:red", label="RMS")
             bottom.plot(x, [r["activation_max"] for r in mine], "^:", color="tab:red", label="max")
             for r in mine:
-                if r["flagged"]:
-                    top.annotate(f"{r['flagged']} flagged", (r["level"], r["clean_rms"]), fontsize=7,
-                                 textcoords="offset points", xytext=(3, 4))
+                if r["flagged"]:  # how many frames, and why: "under-determined", "targets not reachable"
+                    why = ", ".join(r.get("flags", []))
+                    top.annotate(f"{r['flagged']} flagged\n{why}", (r["level"], r["clean_rms"]), fontsize=6,
+                                 textcoords="offset points", xytext=(-60, 4))
             if clean is not None:
                 top.axhline(clean["clean_rms"], color="0.5", linewidth=0.8, label="clean take")
                 bottom.axhline(clean["activation_rms"], color="0.5", linewidth=0.8)

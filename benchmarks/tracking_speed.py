@@ -57,13 +57,8 @@ VARIANTS = {  # name: (FaceProblem keywords, FitSettings fields, QuasistaticSolv
 
 def _fast_variant():
     """``fit --fast`` (face_dolfinx.cli.FAST_FIT) as a variant."""
-    from face_dolfinx.cli import FAST_FIT
-    return (dict(reuse_factorization=FAST_FIT["reuse_factorization"],
-                 refresh_contraction=FAST_FIT["refresh_contraction"],
-                 newton_tolerance=FAST_FIT["newton_tolerance"]),
-            dict(max_fresh_jacobians=FAST_FIT["fresh_jacobians"],
-                 approximate_jacobian_within=FAST_FIT["approximate_jacobians"],
-                 max_gn_steps=FAST_FIT["gn_steps"]), {})
+    from face_dolfinx.cli import fast_fit_options
+    return (*fast_fit_options(), {})
 
 
 VARIANTS["fast"] = _fast_variant()

@@ -31,6 +31,16 @@ FAST_FIT = dict(reuse_factorization=True, refresh_contraction=0.5, fresh_jacobia
                 approximate_jacobians=0.3, newton_tolerance=1e-2, gn_steps=2)
 
 
+def fast_fit_options() -> tuple[dict, dict]:
+    """``fit --fast`` as (FaceProblem keywords, FitSettings fields), for code that builds its own fitter."""
+    return (dict(reuse_factorization=FAST_FIT["reuse_factorization"],
+                 refresh_contraction=FAST_FIT["refresh_contraction"],
+                 newton_tolerance=FAST_FIT["newton_tolerance"]),
+            dict(max_fresh_jacobians=FAST_FIT["fresh_jacobians"],
+                 approximate_jacobian_within=FAST_FIT["approximate_jacobians"],
+                 max_gn_steps=FAST_FIT["gn_steps"]))
+
+
 def _setup_logging(folder: pathlib.Path | None = None, verbose: bool = False) -> None:
     """Log to the console and (optionally) ``folder``/run.log, from rank 0 only."""
     root = logging.getLogger()
@@ -172,13 +182,18 @@ def synth(model, args) -> None:
     out = pathlib.Path(args.out)
     if out.exists() and not args.overwrite:
         raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
+    take_frames = args.take_frames or args.frames
+    if args.first_frame < 0 or args.first_frame + args.frames > take_frames:
+        raise SystemExit(f"--first-frame {args.first_frame} + --frames {args.frames} runs past the "
+                         f"{take_frames}-frame take (--take-frames)")
     problem = FaceProblem(model)
     names = list(model.markers)
     markers = MarkerSet(problem, np.array([model.markers[n] for n in names]), names=names)
     capture, truth = synthesize_take(
-        problem, markers, model, args.scenario, n_frames=args.frames, frame_rate=args.rate,
+        problem, markers, model, args.scenario, n_frames=take_frames, frame_rate=args.rate,
         noise=args.noise, outliers=args.outliers, gaps=args.gaps, head_motion=not args.no_head_motion,
-        seed=args.seed, progress=lambda f: log.info("synth frame %d/%d", f + 1, args.frames))
+        seed=args.seed, progress=lambda f: log.info("synth frame %d/%d", f + 1, args.frames),
+        frames=range(args.first_frame, args.first_frame + args.frames))
 
     def write():
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -513,6 +528,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="smile, jaw, brow, speech, mixed or training (Choe & Ko's: each muscle alone, "
                         "jaw limits, expressions; give frames = a multiple of the segment count)")
     p.add_argument("--frames", type=int, default=30)
+    p.add_argument("--take-frames", type=int,
+                   help="write only --frames frames of a take this long (the scenario's motion spans the "
+                        "whole take, so a short stretch of a long take moves at capture speed)")
+    p.add_argument("--first-frame", type=int, default=0, help="with --take-frames: where the stretch starts")
     p.add_argument("--rate", type=float, default=60.0, help="frame rate (Hz)")
     p.add_argument("--noise", type=float, default=0.5, help="marker noise, RMS of the 3D error (mm)")
     p.add_argument("--outliers", type=int, default=0, help="markers jumping 10 mm for 3 frames")

@@ -277,9 +277,10 @@ class QuasistaticSolver:
         # Makes MUMPS factorise without numerical pivoting (SYM = 1): 4.4-5.0 s instead of 5.5 s at
         # 404K tets, same solve residual (1e-12). Off equilibrium the tangent may have a few
         # negative pivots (2 of 237K seen mid-Newton on the pucker), which this LDL^T factorises
-        # as well. A zero pivot fails the factorisation (seen once, in a 404K jaw opening's
-        # fallback): newton() then drops the flag (_factorise_with_pivoting).
+        # as well. A zero pivot fails the factorisation (seen in jaw openings from rest at
+        # 404K): newton() then drops the flag for that solve (_factorise_with_pivoting).
         self.tangent.setOption(PETSc.Mat.Option.SPD, True)
+        self._pivoting = False
         self._solution = unknown.vector.duplicate()
         self._start = unknown.vector.duplicate()  # where the current Newton solve began
         self._factor_state = unknown.vector.duplicate()  # the unknown whose tangent was factorised
@@ -395,7 +396,9 @@ class QuasistaticSolver:
         if iteration == 0:
             self._guard_cuts, self._initial_fnorm, self._step_was_cut = 0, fnorm, False
             self._correction_size, self._contraction = math.inf, 0.0
+            self._two_step_contraction = math.inf
         else:
+            self._two_step_contraction = math.sqrt(self._contraction * fnorm / max(self._last_fnorm, 1e-300))
             self._contraction = fnorm / max(self._last_fnorm, 1e-300)
         self._last_fnorm = fnorm
         if not np.isfinite(fnorm):
@@ -436,6 +439,11 @@ class QuasistaticSolver:
         if self.reuse_factorization:
             keep = iteration == 0 or contracting
         else:  # this solve's own factor, once Newton has converged to within CONVERGING_CORRECTION
+            # Modified-Newton residuals alternate between fast and slow cuts (0.017, 0.26, ... on
+            # the 404K pucker), so once the factor is kept it is judged over two iterations: one
+            # slow cut alone refactorised at a 1e-6 mm correction, 7 s of a 61 s solve.
+            if not self._fresh_factor_in_iteration:
+                contracting = iteration > 0 and self._two_step_contraction <= self.refresh_contraction
             keep = contracting and self._correction_size < self.converging_correction
         keep = keep and self._has_factor and not self._step_was_cut
         self._fresh_factor_in_iteration = not keep
@@ -505,6 +513,8 @@ class QuasistaticSolver:
     def newton(self) -> tuple[bool, int, str]:
         """One SNES solve from the current unknown; Dirichlet values are reached by the Newton steps."""
         self._refreshed_in_solve = False
+        if self._pivoting:
+            self._set_pivoting(False)
         self.unknown.vector.copy(self._start)
         reason = self._solve_from_start()
         if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE:
@@ -527,13 +537,19 @@ class QuasistaticSolver:
 
     def _factorise_with_pivoting(self) -> None:
         """After a failed factorisation (a zero pivot of a tangent factorised without pivoting,
-        seen mid-Newton at 404K tets): MUMPS keeps its error, and PETSc then skips every later
-        numerical factorisation of the same analysis, so the preconditioner is reset (a new
-        analysis) and the tangent is factorised as symmetric indefinite, with pivoting, from now on."""
+        seen mid-Newton in jaw openings from rest at 404K tets): MUMPS keeps its error, and
+        PETSc then skips every later numerical factorisation of the same analysis, so the
+        preconditioner is reset (a new analysis) and the tangent is factorised as symmetric
+        indefinite, with pivoting, for the rest of this solve. The next solve goes back to the
+        cheaper factorisation: staying with pivoting made the next pucker solve at 404K 68 s against 56 s."""
         if self.comm.rank == 0:
-            log.warning("the tangent's factorisation failed (zero pivot without pivoting): factorising "
-                        "it with pivoting from now on and retrying the Newton solve")
-        self.tangent.setOption(PETSc.Mat.Option.SPD, False)
+            log.warning("the tangent's factorisation failed (zero pivot without pivoting): retrying the "
+                        "Newton solve with pivoting")
+        self._set_pivoting(True)
+
+    def _set_pivoting(self, pivoting: bool) -> None:
+        self._pivoting = pivoting
+        self.tangent.setOption(PETSc.Mat.Option.SPD, not pivoting)
         self.snes.getKSP().getPC().reset()
         self._has_factor = False
 

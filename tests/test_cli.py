@@ -226,3 +226,23 @@ def test_chunks_in_ranks_or_separate_processes(builtin_model_path, shared_tmp):
     assert (apart / "IN_PROGRESS").exists() and not (apart / "frames.csv").exists()
     assert main(["fit", str(take), *model, "--chunks", "2", "--chunk", "0", "--out", str(apart)]) == 0
     assert (apart / "frames.csv").exists() and not (apart / "IN_PROGRESS").exists()
+
+
+def test_synth_writes_a_stretch_of_a_longer_take(builtin_model_path, shared_tmp):
+    """--take-frames/--first-frame: the frames of a long take at its own spacing, so a short
+    take moves at capture speed; a stretch past the take's end is refused."""
+    import numpy as np
+    from face_dolfinx.model import load_model
+    from face_dolfinx.synthetic import control_curves, load_truth
+    model = ["--model", str(builtin_model_path)]
+    take = shared_tmp / "stretch.trc"
+    assert main(["synth", *model, "--scenario", "smile", "--frames", "2", "--take-frames", "240",
+                 "--first-frame", "114", "--noise", "0.0", "--out", str(take)]) == 0
+    truth = load_truth(take.with_name("stretch.truth.npz"))
+    activations, tmj, _ = control_curves(load_model(builtin_model_path, MPI.COMM_WORLD), "smile", 240)
+    assert np.array_equal(truth.activations, activations[114:116])
+    assert np.array_equal(truth.tmj, tmj[114:116])
+    assert np.abs(truth.activations[1] - truth.activations[0]).max() < 0.05  # 1/60 s apart
+    with pytest.raises(SystemExit, match="runs past the 240-frame take"):
+        main(["synth", *model, "--frames", "2", "--take-frames", "240", "--first-frame", "239",
+              "--out", str(shared_tmp / "never.trc")])
