@@ -23,6 +23,8 @@ $MPI2 $PYTHON benchmarks/tracking_speed.py --tets 400000 --frames 4 --variants f
 $MPI2 $PYTHON benchmarks/tracking_speed.py --tets 50000 --frames 4 --variants naive fresh reuse-1j > runs/tracking_50k.log
 $PYTHON benchmarks/ranks_and_chunks.py --tets 20000 --frames 120 \
   --fit-options="--reuse-factorization --fresh-jacobians 1" > runs/ranks_and_chunks.log
+$PYTHON benchmarks/ranks_and_chunks.py --tets 400000 --frames 16 --take-frames 240 --first-frame 80 \
+  --fit-options=--fast > runs/ranks_and_chunks_404k.log
 
 # Where methods fail, and the model ladder (each writes its own tables and figures).
 $PYTHON benchmarks/stability.py --out runs/stability.jsonl

@@ -17,3 +17,11 @@ for variant in reuse gn1 fast paper; do run --tets 10000 --rungs --variants $var
 run --tets 20000 --rungs fe --variants
 for variant in newton-1e-4 ls2 newton-1e-6 gn6 fresh-jacobian; do run --tets 10000 --rungs --variants $variant; done
 $PYTHON benchmarks/model_ladder.py --collect $OUT --plot docs/img/ladder > runs/ladder_table.md
+
+# At the paper's scale: a truth at 404K tets, the FE rungs on 2 ranks, `fit --fast` at every size
+# (about 80 minutes, most of it the 404K truth and the 404K rung).
+OUT404=${OUT404:-runs/ladder_404k.jsonl}
+[ -e runs/STOP ] && exit 0
+mpirun -n 2 $PYTHON benchmarks/model_ladder.py --truth-tets 400000 --tets 10000 50000 --rungs fe \
+  --variants fit-fast --variant-tets 10000 50000 150000 400000 --scenarios speech jaw smile --frames 12 --out $OUT404
+$PYTHON benchmarks/model_ladder.py --collect $OUT404 --plot docs/img/ladder_404k > runs/ladder_404k_table.md

@@ -264,8 +264,8 @@ def fit(model, args) -> None:
     """Fit every frame of a take, writing each as soon as it is done; resumes a killed run."""
     from tqdm import tqdm
     from .bones import AffineMap
-    from .capture import read_capture
-    from .fitting import FaceFitter, FitSettings, MarkerSet, chunk_ranges
+    from .capture import chunk_ranges, read_capture
+    from .fitting import FaceFitter, FitSettings, MarkerSet
     from .model import load_model
     from .output import FileNodeOrder
     from .problem import FaceProblem

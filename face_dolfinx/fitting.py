@@ -386,9 +386,10 @@ class FaceFitter:
                 dofs, marker_columns, seconds, exact_jacobian = self._columns(state, within)
                 self._cached_jacobian = (state.copy(), dofs, marker_columns)
                 fresh_jacobians += int(exact_jacobian)
+                jacobian_kind = "exact" if exact_jacobian else "approximate"
             else:
                 dofs, marker_columns, seconds = self._reused_columns(state)
-                exact_jacobian = False
+                exact_jacobian, jacobian_kind = False, "reused"
             phases["sensitivities"] += seconds
             t0 = time.perf_counter()
             simulated = self.markers.positions(base_u, state.cranium)
@@ -412,6 +413,10 @@ class FaceFitter:
                 self._adapt_trust_radius(step, objective - candidate_objective, predicted)
             full_step_good = candidate_objective < objective or (
                 not settings.line_search and math.isfinite(candidate_objective))
+            if self.problem.comm.rank == 0:
+                log.debug("frame %d step %d: %s Jacobian, max |da| %.3f (trust %.3f), objective %.4g -> %.4g",
+                          frame, steps, jacobian_kind, np.abs(step[:self.problem.num_muscles]).max(),
+                          self.trust_radius, objective, candidate_objective)
             if full_step_good and not (settings.line_search and settings.line_search_every_step):
                 accepted, new_objective = candidate, candidate_objective
             else:
@@ -631,13 +636,6 @@ def _axis_angle(R: np.ndarray) -> tuple[np.ndarray, float]:
         return np.array([1.0, 0.0, 0.0]), 0.0
     axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     return axis / np.linalg.norm(axis), angle
-
-
-def chunk_ranges(n_frames: int, n_chunks: int) -> list[range]:
-    """Split frames 0..n-1 into ``n_chunks`` contiguous, nearly equal ranges (none empty)."""
-    n_chunks = max(1, min(n_chunks, n_frames))
-    edges = np.linspace(0, n_frames, n_chunks + 1).round().astype(int)
-    return [range(a, b) for a, b in zip(edges[:-1], edges[1:])]
 
 
 def track(fitter: FaceFitter, positions: np.ndarray, frames=None, on_frame=None) -> list[FrameResult]:

@@ -8,7 +8,7 @@
 File formats, units, axes and gap conventions: docs/capture_formats.md.
 """
 
-from ._capture import Capture, CaptureError, frames_with_gaps
+from ._capture import Capture, CaptureError, chunk_ranges, frames_with_gaps
 from ._io import read_capture, write_capture
 
-__all__ = ["Capture", "CaptureError", "frames_with_gaps", "read_capture", "write_capture"]
+__all__ = ["Capture", "CaptureError", "chunk_ranges", "frames_with_gaps", "read_capture", "write_capture"]

@@ -123,3 +123,10 @@ class Capture:
 def frames_with_gaps(capture: Capture) -> np.ndarray:
     """Indices of the frames in which at least one marker is missing."""
     return np.flatnonzero(~capture.present.all(axis=1))
+
+
+def chunk_ranges(n_frames: int, n_chunks: int) -> list[range]:
+    """Split frames 0..n-1 into ``n_chunks`` contiguous, nearly equal ranges (none empty)."""
+    n_chunks = max(1, min(n_chunks, n_frames))
+    edges = np.linspace(0, n_frames, n_chunks + 1).round().astype(int)
+    return [range(a, b) for a, b in zip(edges[:-1], edges[1:])]
