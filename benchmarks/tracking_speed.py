@@ -17,6 +17,7 @@ then fits the same stretch of it with each ``--variants`` entry, one fresh probl
   krylov-1j-loose-gn2  the same, the old factor preconditioning GMRES on the exact tangent instead
             of refactorising when modified Newton slows (``krylov_on_old_factor``)
   fast      ``fit --fast``: reuse-1j with 2 Gauss-Newton steps, Newton stopping at 1e-2 mm,
+            3 secant iterations in its line search,
             refactorising only when an iteration cuts the residual less than 2-fold, and Jacobians
             from the equilibrium solve's last factor when it was made within 0.3 mm of the
             equilibrium (only the remaining one per frame is exact)

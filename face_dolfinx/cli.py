@@ -28,14 +28,15 @@ log = logging.getLogger("face_dolfinx")
 # ``fit --fast``: measured at 404K tets on 2 cores (docs/performance.md, tracking_speed.py's
 # ``fast`` variant) against the naive loop, with the same marker and activation errors on a 60 Hz take.
 FAST_FIT = dict(reuse_factorization=True, refresh_contraction=0.5, fresh_jacobians=1,
-                approximate_jacobians=0.3, newton_tolerance=1e-2, gn_steps=2)
+                approximate_jacobians=0.3, newton_tolerance=1e-2, gn_steps=2, line_search_iterations=3)
 
 
 def fast_fit_options() -> tuple[dict, dict]:
     """``fit --fast`` as (FaceProblem keywords, FitSettings fields), for code that builds its own fitter."""
     return (dict(reuse_factorization=FAST_FIT["reuse_factorization"],
                  refresh_contraction=FAST_FIT["refresh_contraction"],
-                 newton_tolerance=FAST_FIT["newton_tolerance"]),
+                 newton_tolerance=FAST_FIT["newton_tolerance"],
+                 line_search_iterations=FAST_FIT["line_search_iterations"]),
             dict(max_fresh_jacobians=FAST_FIT["fresh_jacobians"],
                  approximate_jacobian_within=FAST_FIT["approximate_jacobians"],
                  max_gn_steps=FAST_FIT["gn_steps"]))
@@ -284,6 +285,8 @@ def fit(model, args) -> None:
         raise SystemExit(f"--newton-tolerance {args.newton_tolerance}: give a positive distance in mm")
     if not 0 < args.refresh_contraction < 1:
         raise SystemExit(f"--refresh-contraction {args.refresh_contraction}: give a factor between 0 and 1")
+    if args.line_search_iterations < 1:
+        raise SystemExit(f"--line-search-iterations {args.line_search_iterations}: give 1 or more")
     if not args.approximate_jacobians >= 0:
         raise SystemExit(f"--approximate-jacobians {args.approximate_jacobians}: give a distance in mm, 0 or more")
     if args.fresh_jacobians is not None and args.fresh_jacobians < 0:
@@ -295,7 +298,8 @@ def fit(model, args) -> None:
                gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames,
                chunks=args.chunks, reuse_factorization=args.reuse_factorization,
                newton_tolerance=args.newton_tolerance, refresh_contraction=args.refresh_contraction,
-               fresh_jacobians=args.fresh_jacobians, approximate_jacobians=args.approximate_jacobians)
+               fresh_jacobians=args.fresh_jacobians, approximate_jacobians=args.approximate_jacobians,
+               line_search_iterations=args.line_search_iterations)
     run.update(alignment=placement.method, neutral_frame=placement.neutral_frame,
                correspondence=str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None)
     alignment_record = json.dumps(placement.to_json(), indent=2)
@@ -324,7 +328,8 @@ def fit(model, args) -> None:
     group_comm = comm.Split(group, comm.rank) if groups > 1 else comm
     group_model = load_model(model.path, group_comm) if groups > 1 else model
     problem = FaceProblem(group_model, reuse_factorization=args.reuse_factorization,
-                          newton_tolerance=args.newton_tolerance, refresh_contraction=args.refresh_contraction)
+                          newton_tolerance=args.newton_tolerance, refresh_contraction=args.refresh_contraction,
+                          line_search_iterations=args.line_search_iterations)
     node_order = FileNodeOrder(problem.V)
     markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
     # A chunk is fitted from its first unfinished frame on, so that every frame after it starts
@@ -573,6 +578,9 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--refresh-contraction", type=float, default=REFRESH_CONTRACTION, metavar="R",
                    help=f"with --reuse-factorization: refactorise when a Newton iteration cuts the "
                         f"residual by less than this factor (default {REFRESH_CONTRACTION})")
+    p.add_argument("--line-search-iterations", type=int, default=1, metavar="N",
+                   help="secant iterations of Newton's line search (default 1; 3 cut the slowest "
+                        "frames at 404K tets, where the lips move fast, from 94 to 21 s)")
     p.add_argument("--approximate-jacobians", type=float, default=0.0, metavar="MM",
                    help="a Jacobian may use the last factor of the equilibrium solve if it was made at "
                         "a state this close to the equilibrium, instead of a new factorisation "

@@ -146,6 +146,9 @@ class FaceProblem:
     refresh_contraction : with ``reuse_factorization``, refactorise when a Newton iteration cuts the
         residual by less than this factor (0.25; 0.5 saved factorisations at 404K tets, where one
         costs as much as a dozen iterations, docs/performance.md).
+    line_search_iterations : secant iterations of the critical-point line search per Newton step
+        (PETSc ``snes_linesearch_max_it``; 1). 3 cut the slowest tracking frames at 404K tets from 94
+        to 21 s, where Newton converges only linearly (docs/performance.md, session 8).
     inversion_guard : shorten Newton steps that would flatten a cell (``solver.InversionGuard``);
         off only to measure what the guard buys (``benchmarks/stability.py``; solves without a
         ``guess``, which the guard pulls back).
@@ -154,7 +157,10 @@ class FaceProblem:
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
                  petsc_options: dict | None = None, reuse_factorization: bool = False,
                  krylov_on_old_factor: bool = False, newton_tolerance: float = 1e-8,
-                 refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True):
+                 refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True,
+                 line_search_iterations: int = 1):
+        if line_search_iterations < 1:
+            raise ValueError(f"line_search_iterations = {line_search_iterations}: give 1 or more")
         self.model = model
         mesh = self.mesh = model.mesh
         self.comm = mesh.comm
@@ -192,7 +198,8 @@ class FaceProblem:
         self.bone_blocks = np.concatenate([self.cranium_blocks, self.mandible_blocks])
         self.bcs = [fem.dirichletbc(self.bone_displacement, self.bone_blocks)]
         self.solver = QuasistaticSolver(residual, self.u, self.bcs, energy=energy,
-                                        petsc_options=petsc_options,
+                                        petsc_options={"snes_linesearch_max_it": line_search_iterations,
+                                                       **(petsc_options or {})},
                                         inversion_guard=InversionGuard(self.V) if inversion_guard else None,
                                         reuse_factorization=reuse_factorization,
                                         krylov_on_old_factor=krylov_on_old_factor,

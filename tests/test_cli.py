@@ -197,6 +197,8 @@ def test_reuse_and_a_looser_newton_tolerance_fit_the_same_take(fitted_take, shar
     assert json.loads((fast / "run.json").read_text())["newton_tolerance"] == 1e-4
     with pytest.raises(SystemExit, match="--newton-tolerance 0.0: give a positive distance"):
         main(["fit", str(take), *model, "--out", str(shared_tmp / "never"), "--newton-tolerance", "0"])
+    with pytest.raises(SystemExit, match="--line-search-iterations 0: give 1 or more"):
+        main(["fit", str(take), *model, "--out", str(shared_tmp / "never"), "--line-search-iterations", "0"])
     assert not (shared_tmp / "never").exists()
 
 

@@ -54,8 +54,10 @@ tets = 9000
         assert (args.gn_steps, args.newton_tolerance) == (5, 1e-3)
         assert (args.reuse_factorization, args.refresh_contraction, args.approximate_jacobians) == \
             (FAST_FIT["reuse_factorization"], FAST_FIT["refresh_contraction"], FAST_FIT["approximate_jacobians"])
+        assert args.line_search_iterations == FAST_FIT["line_search_iterations"] == 3
     args, _ = parse_arguments(["fit", "take.trc"])
     assert (args.reuse_factorization, args.approximate_jacobians, args.gn_steps) == (False, 0.0, 3)
+    assert args.line_search_iterations == 1
     args, _ = parse_arguments(["build", "--config", str(config), "--tets", "3000"])
     assert args.tets == 3000
 

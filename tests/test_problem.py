@@ -112,6 +112,20 @@ def test_equilibrium_all_muscles_and_large_jaw_motion_converge():
     assert np.abs(p.u.x.array).max() < 1e-6
 
 
+def test_more_line_search_iterations_change_the_path_not_the_equilibrium():
+    """fit --fast gives the critical-point line search 3 secant iterations per Newton step: more
+    residual evaluations, the same equilibrium. Fewer than one is refused."""
+    activations = [1.0, 0.5, 0.8]
+    one, three = FaceProblem(slab_model()), FaceProblem(slab_model(), line_search_iterations=3)
+    for p in (one, three):
+        assert p.solve(activations=activations).converged
+    assert three.solver.residual_evaluations > one.solver.residual_evaluations
+    assert three.u.vector.norm() == pytest.approx(one.u.vector.norm(), rel=1e-10)
+    assert three.energy() == pytest.approx(one.energy(), rel=1e-10)
+    with pytest.raises(ValueError, match="line_search_iterations = 0"):
+        FaceProblem(slab_model(), line_search_iterations=0)
+
+
 def test_rigid_head_motion_is_exact_and_cheap():
     """A cranium motion moves everything rigidly: the predictor makes it a zero-iteration solve."""
     p = FaceProblem(slab_model())
