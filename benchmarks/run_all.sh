@@ -25,6 +25,17 @@ $PYTHON benchmarks/ranks_and_chunks.py --tets 20000 --frames 120 \
   --fit-options="--reuse-factorization --fresh-jacobians 1" > runs/ranks_and_chunks.log
 $PYTHON benchmarks/ranks_and_chunks.py --tets 400000 --frames 16 --take-frames 240 --first-frame 80 \
   --fit-options=--fast > runs/ranks_and_chunks_404k.log
+# The fastest speech stretch (frames 114-125) of two takes at 400K, fit --fast with one and with three
+# line-search iterations (docs/performance.md, session 8): per-frame seconds in each timings.csv.
+for seed in 0 3; do
+  take=runs/speech114_seed$seed.trc
+  $MPI2 $PYTHON run.py synth --tets 400000 --frames 12 --take-frames 240 --first-frame 114 --noise 0.5 \
+    --seed $seed --out $take --overwrite
+  for iterations in 1 3; do
+    $MPI2 $PYTHON run.py fit $take --tets 400000 --fast --line-search-iterations $iterations \
+      --out runs/speech114_seed${seed}_ls$iterations --overwrite
+  done
+done
 
 # Where methods fail, and the model ladder (each writes its own tables and figures).
 $PYTHON benchmarks/stability.py --out runs/stability.jsonl
