@@ -31,12 +31,13 @@ FAST_FIT = dict(reuse_factorization=True, refresh_contraction=0.5, fresh_jacobia
                 approximate_jacobians=0.3, newton_tolerance=1e-2, gn_steps=2, line_search_iterations=3)
 
 
+# ``fit`` options that are FaceProblem keywords of the same name.
+PROBLEM_OPTIONS = ("reuse_factorization", "refresh_contraction", "newton_tolerance", "line_search_iterations")
+
+
 def fast_fit_options() -> tuple[dict, dict]:
     """``fit --fast`` as (FaceProblem keywords, FitSettings fields), for code that builds its own fitter."""
-    return (dict(reuse_factorization=FAST_FIT["reuse_factorization"],
-                 refresh_contraction=FAST_FIT["refresh_contraction"],
-                 newton_tolerance=FAST_FIT["newton_tolerance"],
-                 line_search_iterations=FAST_FIT["line_search_iterations"]),
+    return ({name: FAST_FIT[name] for name in PROBLEM_OPTIONS},
             dict(max_fresh_jacobians=FAST_FIT["fresh_jacobians"],
                  approximate_jacobian_within=FAST_FIT["approximate_jacobians"],
                  max_gn_steps=FAST_FIT["gn_steps"]))
@@ -327,9 +328,7 @@ def fit(model, args) -> None:
     group = comm.rank * groups // comm.size
     group_comm = comm.Split(group, comm.rank) if groups > 1 else comm
     group_model = load_model(model.path, group_comm) if groups > 1 else model
-    problem = FaceProblem(group_model, reuse_factorization=args.reuse_factorization,
-                          newton_tolerance=args.newton_tolerance, refresh_contraction=args.refresh_contraction,
-                          line_search_iterations=args.line_search_iterations)
+    problem = FaceProblem(group_model, **{name: getattr(args, name) for name in PROBLEM_OPTIONS})
     node_order = FileNodeOrder(problem.V)
     markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
     # A chunk is fitted from its first unfinished frame on, so that every frame after it starts
