@@ -5,7 +5,7 @@ Run ``python run.py --help`` (and ``python run.py SUBCOMMAND --help``) for the o
 """
 import sys
 
-from face_dolfinx.cli import main
+from face_dolfinx.cli.main import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -28,11 +28,11 @@ def peak_memory_gb(comm) -> float:
 def run_resolution(target_tets: int, expressions: list[str], degree: int,
                    reuse_factorization: bool = False, coarse_tets: int | None = None,
                    krylov: bool = False, refresh_contraction: float | None = None) -> dict:
-    from face_dolfinx.anatomy import build_builtin_face
-    from face_dolfinx.bones import AffineMap, jaw_pose
-    from face_dolfinx.coarse import CoarseStart
-    from face_dolfinx.model import load_model
-    from face_dolfinx.problem import FaceProblem
+    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.model.bones import AffineMap, jaw_pose
+    from face_dolfinx.equilibrium.coarse import CoarseStart
+    from face_dolfinx.model.folder import load_model
+    from face_dolfinx.physics.problem import FaceProblem
 
     comm = MPI.COMM_WORLD
     t0 = time.perf_counter()
@@ -110,7 +110,7 @@ def main():
                              "less than this factor (FaceProblem's default if not given)")
     parser.add_argument("--coarse", type=int, metavar="TETS",
                         help="start every fine solve from the equilibrium of the built-in face at TETS "
-                             "(face_dolfinx.coarse; Newton counts and factorisations are the fine model's)")
+                             "(face_dolfinx.equilibrium.coarse; Newton counts and factorisations are the fine model's)")
     parser.add_argument("--collect", nargs="+", metavar=("TABLE", "JSONL"),
                         help="write a Markdown table TABLE from JSON-lines files")
     args = parser.parse_args()

@@ -65,8 +65,8 @@ VARIANTS = {
 
 
 def _fit_fast_variant():
-    """``fit --fast`` (face_dolfinx.cli.FAST_FIT), the production setting of docs/performance.md."""
-    from face_dolfinx.cli import fast_fit_options
+    """``fit --fast`` (face_dolfinx.cli.main.FAST_FIT), the production setting of docs/performance.md."""
+    from face_dolfinx.cli.main import fast_fit_options
     problem_options, settings = fast_fit_options()
     return settings, {}, problem_options
 
@@ -122,14 +122,14 @@ def resimulated_rms(problem, markers, results, positions) -> list[float]:
 
 def run(args) -> None:
     from mpi4py import MPI
-    from face_dolfinx.anatomy import build_builtin_face
-    from face_dolfinx.baselines import ActuationBasis, LinearFitter, LinearizedModel
-    from face_dolfinx.bones import AffineMap
-    from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet, track
-    from face_dolfinx.model import load_model
-    from face_dolfinx.problem import FaceProblem
-    from face_dolfinx.surface import SkinSurface
-    from face_dolfinx.synthetic import SCENARIOS, TakeTruth, synthesize_take, training_segments
+    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.fitting.baselines import ActuationBasis, LinearFitter, LinearizedModel
+    from face_dolfinx.model.bones import AffineMap
+    from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet, track
+    from face_dolfinx.model.folder import load_model
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.alignment.surface import SkinSurface
+    from face_dolfinx.capture.synthetic import SCENARIOS, TakeTruth, synthesize_take, training_segments
 
     comm = MPI.COMM_WORLD
     out = pathlib.Path(args.out)

@@ -56,7 +56,7 @@ def frame_errors(folder: pathlib.Path) -> tuple[float, float]:
 
 def frame_seconds(folder: pathlib.Path, chunks: int) -> tuple[float, float]:
     """Mean seconds of the frames fitted from rest (each chunk's first) and of the warm-started rest."""
-    # Not face_dolfinx.fitting: it initialises MPI, and Open MPI's mpirun fails without a word when
+    # Not face_dolfinx.fitting.fitter: it initialises MPI, and Open MPI's mpirun fails without a word when
     # started from a process that has.
     from face_dolfinx.capture import chunk_ranges
     with open(folder / "timings.csv") as table:

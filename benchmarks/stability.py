@@ -179,7 +179,7 @@ def failure_mode(reason: str, guarded: bool) -> str:
 
 def turned_head(model, degrees: float):
     """The cranium frame turned by ``degrees`` about HEAD_AXIS through the markers' centre."""
-    from face_dolfinx.bones import rigid_map, rotation
+    from face_dolfinx.model.bones import rigid_map, rotation
     centre = np.array(list(model.markers.values())).mean(axis=0)
     return rigid_map(rotation(HEAD_AXIS, math.radians(degrees)), centre, np.zeros(3))
 
@@ -188,8 +188,8 @@ def load_controls(model, activations, opening: float, slide: bool):
     """Controls of a load: ``activations`` a level for every muscle or an expression's name,
     the jaw opened by ``opening`` times its limit (asin of max_opening_sine), the condyles at the
     end of their tracks if ``slide``."""
-    from face_dolfinx.bones import AffineMap, jaw_pose
-    from face_dolfinx.problem import Controls
+    from face_dolfinx.model.bones import AffineMap, jaw_pose
+    from face_dolfinx.physics.problem import Controls
 
     jaw = model.jaw
     levels = np.zeros(len(model.muscles))
@@ -205,8 +205,8 @@ def load_controls(model, activations, opening: float, slide: bool):
 def to_rest(problem) -> None:
     """Put the problem back at rest, the exact equilibrium of zero controls, without a solve
     (FaceProblem.solve would walk the controls back from wherever they were)."""
-    from face_dolfinx.bones import AffineMap
-    from face_dolfinx.problem import Controls
+    from face_dolfinx.model.bones import AffineMap
+    from face_dolfinx.physics.problem import Controls
     problem.u.x.array[:] = 0.0
     problem._set_controls(Controls(np.zeros(problem.num_muscles), AffineMap(), AffineMap()))
 
@@ -215,8 +215,8 @@ class ForwardRunner:
     """One FaceProblem per variant; solves rest -> a load in one call and measures the result."""
 
     def __init__(self, model, variant: str):
-        from face_dolfinx.problem import FaceProblem
-        from face_dolfinx.solver import InversionGuard
+        from face_dolfinx.physics.problem import FaceProblem
+        from face_dolfinx.equilibrium.solver import InversionGuard
 
         self.variant = VARIANTS[variant]
         self.problem = FaceProblem(model, petsc_options=self.variant.petsc_options,
@@ -226,7 +226,7 @@ class ForwardRunner:
         self.problem.solver.snes.setMonitor(lambda snes, its, fnorm: self.residuals.append((its, fnorm)))
 
     def solve(self, target) -> dict:
-        from face_dolfinx.solver import EquilibriumError
+        from face_dolfinx.equilibrium.solver import EquilibriumError
 
         problem = self.problem
         to_rest(problem)
@@ -287,11 +287,11 @@ def forward_study(model, loads: dict, write, study: str) -> None:
 
 def remote_study(model, args, write) -> None:
     """Single-frame fits of REMOTE_TARGETS from rest (or the opposite guess), every REMOTE_METHOD."""
-    from face_dolfinx.bones import jaw_pose
-    from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
-    from face_dolfinx.problem import FaceProblem
-    from face_dolfinx.solver import EquilibriumError
-    from forms import penalties
+    from face_dolfinx.model.bones import jaw_pose
+    from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.equilibrium.solver import EquilibriumError
+    from face_dolfinx.fitting import penalties
 
     comm = model.mesh.comm
     sites = np.array(list(model.markers.values()))
@@ -372,8 +372,8 @@ def head_study(model, write) -> None:
     """The smile with the jaw 15 degrees open and the head turned by HEAD_TURNS: from rest to
     there, a second Newton solve in place (how far the residual of an equilibrium can fall, against
     snes_atol), and back to rest (continuation between remote head poses)."""
-    from face_dolfinx.bones import AffineMap, jaw_pose
-    from face_dolfinx.solver import EquilibriumError
+    from face_dolfinx.model.bones import AffineMap, jaw_pose
+    from face_dolfinx.equilibrium.solver import EquilibriumError
 
     smile = load_controls(model, "smile", 0.0, False).activations
     jaw = jaw_pose(model.jaw, math.radians(15.0))
@@ -430,10 +430,10 @@ def damaged_takes(clean: np.ndarray, seed: int):
 
 
 def damage_study(model, args, write) -> None:
-    from face_dolfinx.fitting import FaceFitter, MarkerSet, track
-    from face_dolfinx.problem import FaceProblem
-    from face_dolfinx.solver import EquilibriumError
-    from face_dolfinx.synthetic import synthesize_take
+    from face_dolfinx.fitting.fitter import FaceFitter, MarkerSet, track
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.equilibrium.solver import EquilibriumError
+    from face_dolfinx.capture.synthetic import synthesize_take
 
     sites = np.array(list(model.markers.values()))
     truth_problem = FaceProblem(model)
@@ -487,8 +487,8 @@ def damage_study(model, args, write) -> None:
 
 
 def run(args) -> None:
-    from face_dolfinx.anatomy import build_builtin_face
-    from face_dolfinx.model import load_model
+    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.model.folder import load_model
 
     comm = MPI.COMM_WORLD
     out = pathlib.Path(args.out)

@@ -57,8 +57,8 @@ VARIANTS = {  # name: (FaceProblem keywords, FitSettings fields, QuasistaticSolv
 
 
 def _fast_variant():
-    """``fit --fast`` (face_dolfinx.cli.FAST_FIT) as a variant."""
-    from face_dolfinx.cli import fast_fit_options
+    """``fit --fast`` (face_dolfinx.cli.main.FAST_FIT) as a variant."""
+    from face_dolfinx.cli.main import fast_fit_options
     return (*fast_fit_options(), {})
 
 
@@ -68,8 +68,8 @@ PHASES = ("sensitivities", "gn_solve", "equilibrium", "line_search")
 
 
 def fit_variant(name, model, sites, capture, truth, args, comm) -> dict:
-    from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet, track
-    from face_dolfinx.problem import FaceProblem
+    from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet, track
+    from face_dolfinx.physics.problem import FaceProblem
 
     problem_options, settings, solver_attributes = VARIANTS[name]
     problem = FaceProblem(model, **problem_options)
@@ -117,11 +117,11 @@ def main():
     parser.add_argument("--variants", nargs="+", default=["fresh", "reuse"], choices=tuple(VARIANTS))
     args = parser.parse_args()
 
-    from face_dolfinx.anatomy import build_builtin_face
-    from face_dolfinx.fitting import MarkerSet
-    from face_dolfinx.model import load_model
-    from face_dolfinx.problem import FaceProblem
-    from face_dolfinx.synthetic import synthesize_take
+    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.fitting.fitter import MarkerSet
+    from face_dolfinx.model.folder import load_model
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.capture.synthetic import synthesize_take
 
     comm = MPI.COMM_WORLD
     model = load_model(build_builtin_face(args.tets), comm)

@@ -11,7 +11,7 @@ SMALL_FACE_TETS = 5000
 
 @pytest.fixture(scope="session")
 def builtin_model_path():
-    from face_dolfinx.anatomy import build_builtin_face
+    from face_dolfinx.model.anatomy import build_builtin_face
     return build_builtin_face(target_tets=SMALL_FACE_TETS, comm=MPI.COMM_WORLD)
 
 

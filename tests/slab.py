@@ -10,7 +10,7 @@ from mpi4py import MPI
 import numpy as np
 from dolfinx import mesh as dmesh
 
-from face_dolfinx.bones import AffineMap  # noqa: F401  (re-exported for tests)
+from face_dolfinx.model.bones import AffineMap  # noqa: F401  (re-exported for tests)
 
 CRANIUM, MANDIBLE = 1, 2
 

@@ -1,12 +1,12 @@
-"""Aligning a capture to the model: similarity fits, correspondences, their files, ICP (face_dolfinx.align)."""
+"""Aligning a capture to the model: similarity fits, correspondences, their files, ICP (face_dolfinx.alignment.similarity)."""
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from face_dolfinx.align import (AlignmentError, Similarity, align_by_correspondences, align_by_icp,
+from face_dolfinx.alignment.similarity import (AlignmentError, Similarity, align_by_correspondences, align_by_icp,
                                 read_correspondence_file, similarity_transform)
-from face_dolfinx.surface import SkinSurface
+from face_dolfinx.alignment.surface import SkinSurface
 
 
 def face_surface(n_theta=60, n_phi=50):

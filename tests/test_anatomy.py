@@ -13,9 +13,9 @@ import pytest
 from mpi4py import MPI
 
 from conftest import SMALL_FACE_TETS
-from face_dolfinx.anatomy import build_builtin_face, builder
-from face_dolfinx.model import tet_volumes_and_quality
-from face_dolfinx.surface import SkinSurface
+from face_dolfinx.model.anatomy import build_builtin_face, builder
+from face_dolfinx.model.folder import tet_volumes_and_quality
+from face_dolfinx.alignment.surface import SkinSurface
 
 PAIRED_MUSCLES = [
     "frontalis", "corrugator", "orbicularis_oculi", "levator_labii_superioris_alaeque_nasi",

@@ -1,4 +1,4 @@
-"""Linear baselines of the model ladder on the small built-in face (``face_dolfinx.baselines``).
+"""Linear baselines of the model ladder on the small built-in face (``face_dolfinx.fitting.baselines``).
 
 - The actuation basis reproduces the FE shape of one muscle fully on (and of the widest jaw
   opening) at the markers, and the fit of that shape under a head motion returns that element.
@@ -19,13 +19,13 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
-from face_dolfinx.baselines import (ActuationBasis, LinearFitter, LinearizedModel, tmj_limits,
+from face_dolfinx.fitting.baselines import (ActuationBasis, LinearFitter, LinearizedModel, tmj_limits,
                                     upper_face_regions)
-from face_dolfinx.bones import jaw_pose, rigid_map, rotation
-from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet, track
-from face_dolfinx.model import load_model
-from face_dolfinx.problem import FaceProblem
-from face_dolfinx.synthetic import control_curves, synthesize_take, training_segments
+from face_dolfinx.model.bones import jaw_pose, rigid_map, rotation
+from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet, track
+from face_dolfinx.model.folder import load_model
+from face_dolfinx.physics.problem import FaceProblem
+from face_dolfinx.capture.synthetic import control_curves, synthesize_take, training_segments
 
 HEAD = rigid_map(rotation([0.3, 1.0, 0.2], 0.08), [0.0, -10.0, 40.0], [2.0, -1.0, 3.0])
 

@@ -5,7 +5,7 @@ import pathlib
 from mpi4py import MPI
 import pytest
 
-from face_dolfinx.cli import main
+from face_dolfinx.cli.main import main
 
 
 @pytest.fixture
@@ -234,8 +234,8 @@ def test_synth_writes_a_stretch_of_a_longer_take(builtin_model_path, shared_tmp)
     """--take-frames/--first-frame: the frames of a long take at its own spacing, so a short
     take moves at capture speed; a stretch past the take's end is refused."""
     import numpy as np
-    from face_dolfinx.model import load_model
-    from face_dolfinx.synthetic import control_curves, load_truth
+    from face_dolfinx.model.folder import load_model
+    from face_dolfinx.capture.synthetic import control_curves, load_truth
     model = ["--model", str(builtin_model_path)]
     take = shared_tmp / "stretch.trc"
     assert main(["synth", *model, "--scenario", "smile", "--frames", "2", "--take-frames", "240",

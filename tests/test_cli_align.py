@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from face_dolfinx.align import Similarity
+from face_dolfinx.alignment.similarity import Similarity
 from face_dolfinx.capture import Capture, write_capture
-from face_dolfinx.cli import main
-from face_dolfinx.model import load_model
+from face_dolfinx.cli.main import main
+from face_dolfinx.model.folder import load_model
 from user_capture import user_sites, write_correspondence
 
 # The lab frame of the "user's" capture: turned, moved far from the model's origin, 10% larger.
@@ -56,9 +56,9 @@ def fit_args(model, out, *more):
 def test_correspondence_aligned_fit_of_a_users_take(model, shared_dir):
     """A 3-frame synthetic smile with head motion, renamed and moved into a lab frame: aligned by
     the correspondences on its neutral frame, the fit reaches the noise, names kept throughout."""
-    from face_dolfinx.fitting import MarkerSet
-    from face_dolfinx.problem import FaceProblem
-    from face_dolfinx.synthetic import synthesize_take
+    from face_dolfinx.fitting.fitter import MarkerSet
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.capture.synthetic import synthesize_take
     names, sites, correspondence = user_sites(model)
     problem = FaceProblem(model)
     # "smile" starts at rest (frame 0: no activation, no head motion), the neutral frame.
@@ -111,7 +111,7 @@ def test_icp_alignment_without_names(model, still_take, shared_dir, capsys):
 def test_doubtful_alignments_are_warned_about(model, still_take, caplog):
     """ICP of a head 1.4 x the model's (implausible scale), and marker-site names on a capture
     that is not in model coordinates: the fit would go on, with a warning saying what to do."""
-    from face_dolfinx.cli import _place_capture
+    from face_dolfinx.cli.main import _place_capture
     _, _, names, positions = still_take
     big = Capture(names, LAB.apply(1.4 * positions), 60.0)
     options = argparse.Namespace(correspondence=None, neutral_frame=0)

@@ -3,9 +3,9 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
-from face_dolfinx.bones import rigid_map, rotation
-from face_dolfinx.coarse import CoarseStart, _locate
-from face_dolfinx.problem import FaceProblem
+from face_dolfinx.model.bones import rigid_map, rotation
+from face_dolfinx.equilibrium.coarse import CoarseStart, _locate
+from face_dolfinx.physics.problem import FaceProblem
 from slab import slab_model
 
 

@@ -5,7 +5,7 @@ import pathlib
 from mpi4py import MPI
 import pytest
 
-from face_dolfinx.cli import FAST_FIT, main, parse_arguments
+from face_dolfinx.cli.main import FAST_FIT, main, parse_arguments
 
 
 @pytest.fixture

@@ -10,10 +10,10 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
-from face_dolfinx.bones import jaw_pose
-from face_dolfinx.model import ModelError, load_model
-from face_dolfinx.points import PointEvaluator
-from face_dolfinx.problem import FaceProblem
+from face_dolfinx.model.bones import jaw_pose
+from face_dolfinx.model.folder import ModelError, load_model
+from face_dolfinx.physics.points import PointEvaluator
+from face_dolfinx.physics.problem import FaceProblem
 
 
 @pytest.fixture(scope="module")

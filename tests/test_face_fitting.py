@@ -16,12 +16,12 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
-from face_dolfinx.bones import jaw_pose
-from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet, track
-from face_dolfinx.model import load_model
-from face_dolfinx.problem import FaceProblem
-from face_dolfinx.sensitivity import EquilibriumSensitivity, bone_position_derivatives
-from face_dolfinx.synthetic import synthesize_take
+from face_dolfinx.model.bones import jaw_pose
+from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet, track
+from face_dolfinx.model.folder import load_model
+from face_dolfinx.physics.problem import FaceProblem
+from face_dolfinx.sensitivities.columns import EquilibriumSensitivity, bone_position_derivatives
+from face_dolfinx.capture.synthetic import synthesize_take
 
 FRAMES = 4
 
@@ -126,7 +126,7 @@ def test_frame_with_most_markers_missing_is_flagged_under_determined(model, site
     """With 90 % of the 79 markers missing (docs/stability.md, section 4) the remaining 8 are
     fitted closely while some activations are wrong: the frame is flagged, naming muscles; the
     fitted values are kept and reach the frame record."""
-    from face_dolfinx.results import frame_from_dict, frame_to_dict
+    from face_dolfinx.results.folder import frame_from_dict, frame_to_dict
     capture, _ = clean_take
     problem = FaceProblem(model)
     fitter = FaceFitter(problem, MarkerSet(problem, sites), FitSettings())

@@ -9,9 +9,9 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
-from face_dolfinx.bones import jaw_pose, rigid_map, rotation
-from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
-from face_dolfinx.problem import FaceProblem
+from face_dolfinx.model.bones import jaw_pose, rigid_map, rotation
+from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet
+from face_dolfinx.physics.problem import FaceProblem
 from slab import slab_model
 
 A_TRUE = np.array([0.5, 0.2, 0.7])
@@ -147,7 +147,7 @@ def slab_take(model, n_frames=6):
 def test_tracking_warm_start_and_chunks():
     """Sequential tracking recovers every frame; two independent chunks give the same answers."""
     from face_dolfinx.capture import chunk_ranges
-    from face_dolfinx.fitting import track
+    from face_dolfinx.fitting.fitter import track
     model = slab_model()
     sites, positions, activations = slab_take(model)
     settings = dict(first_frame_gn_steps=10, max_gn_steps=4, relative_decrease=1e-8)

@@ -20,7 +20,7 @@ from dolfinx import fem
 from dolfinx import mesh as dmesh
 import dolfinx.fem.petsc as fem_petsc
 
-from face_dolfinx.benchmarks import land2015
+from face_dolfinx.verification import land2015
 from forms.guccione import ActiveFiberStress, Guccione
 from forms.loads import FollowerPressure
 

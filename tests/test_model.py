@@ -1,4 +1,4 @@
-"""Loading model folders (face_dolfinx.model): distributed loading and every ModelError.
+"""Loading model folders (face_dolfinx.model.folder): distributed loading and every ModelError.
 
 The error cases corrupt a private copy of the small face and load it on COMM_SELF, so under
 ``mpirun -n 2`` each rank checks them independently in its own temporary folder.
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from face_dolfinx.model import ModelError, _toml, load_model, tet_volumes_and_quality
+from face_dolfinx.model.folder import ModelError, _toml, load_model, tet_volumes_and_quality
 
 
 @pytest.fixture(scope="module")
@@ -230,7 +230,7 @@ def test_mesh_partition_is_reproducible(builtin_model_path):
     """Two loads give every rank the same cells (DOLFINx's SCOTCH partition did not), with ghost
     cells across the cut, and the cells add up to the whole mesh."""
     from mpi4py import MPI
-    from face_dolfinx.model import load_model
+    from face_dolfinx.model.folder import load_model
 
     def owned_cells():
         mesh = load_model(builtin_model_path, MPI.COMM_WORLD).mesh

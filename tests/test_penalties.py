@@ -9,8 +9,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from face_dolfinx.bones import jaw_pose
-from forms import penalties
+from face_dolfinx.model.bones import jaw_pose
+from face_dolfinx.fitting import penalties
 
 JAW = SimpleNamespace(u=np.array([1.0, 0.0, 0.0]), v=np.array([0.0, -0.2, 1.0]) / np.hypot(0.2, 1.0),
                       condyle_distance=100.0, track_length=10.0, max_opening_sine=0.4)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from dolfinx import fem
 
-from face_dolfinx.points import PointEvaluator
+from face_dolfinx.physics.points import PointEvaluator
 from slab import slab_model
 
 POINTS = np.array([[0.0, 0.0, 0.0], [40.0, 20.0, 10.0], [13.3, 7.7, 10.0], [21.1, 0.0, 4.4],

@@ -11,8 +11,8 @@ import pytest
 from dolfinx import fem
 import dolfinx.fem.petsc as fem_petsc
 
-from face_dolfinx.bones import AffineMap, rigid_map, rotation
-from face_dolfinx.problem import FaceProblem
+from face_dolfinx.model.bones import AffineMap, rigid_map, rotation
+from face_dolfinx.physics.problem import FaceProblem
 from slab import slab_model
 
 
@@ -199,7 +199,7 @@ def test_continuation_gives_up_only_when_its_step_is_too_small():
     """A walk that needs steps of at most 0.3 of the way fails at steps 1 and 0.5 again and again
     but gets there with max_halvings = 2 (steps down to 0.25); with max_halvings = 1 it stops at
     the last equilibrium and says how far it got."""
-    from face_dolfinx.solver import EquilibriumError
+    from face_dolfinx.equilibrium.solver import EquilibriumError
 
     p = FaceProblem(slab_model())
     reached = {"t": 0.0, "load": 0.0}
@@ -227,7 +227,7 @@ def test_kept_coefficient_data_follow_the_unknown_and_repack_when_stale(problem)
     own packing whenever the unknown changes, and needs ``stale`` when another coefficient does
     (the owner's controls_changed())."""
     from dolfinx.fem.assemble import pack_coefficients
-    from face_dolfinx.solver import PackedCoefficients
+    from face_dolfinx.equilibrium.solver import PackedCoefficients
     form = problem.solver.residual_form
     kept = PackedCoefficients(form, problem.u)
     rng = np.random.default_rng(4)

@@ -1,4 +1,4 @@
-"""Offscreen skin renders (face_dolfinx.render): a picture with a face in it, quickly."""
+"""Offscreen skin renders (face_dolfinx.results.render): a picture with a face in it, quickly."""
 import time
 
 import matplotlib.image as mpimg
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from face_dolfinx.model import load_model
-from face_dolfinx.render import render_skin
+from face_dolfinx.model.folder import load_model
+from face_dolfinx.results.render import render_skin
 
 
 @pytest.fixture(scope="module")

@@ -8,9 +8,9 @@ import pytest
 from mpi4py import MPI
 from dolfinx import fem
 
-from face_dolfinx.model import load_model
-from face_dolfinx.output import FileNodeOrder, XdmfSeries
-from face_dolfinx.report import ModelMesh, _ranges
+from face_dolfinx.model.folder import load_model
+from face_dolfinx.results.xdmf import FileNodeOrder, XdmfSeries
+from face_dolfinx.results.report import ModelMesh, _ranges
 
 
 @pytest.fixture(scope="module")

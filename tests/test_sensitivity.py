@@ -10,10 +10,10 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
-from face_dolfinx.bones import AffineMap, jaw_pose, rigid_map, rotation
-from face_dolfinx.points import PointEvaluator
-from face_dolfinx.problem import FaceProblem
-from face_dolfinx.sensitivity import EquilibriumSensitivity, bone_position_derivatives
+from face_dolfinx.model.bones import AffineMap, jaw_pose, rigid_map, rotation
+from face_dolfinx.physics.points import PointEvaluator
+from face_dolfinx.physics.problem import FaceProblem
+from face_dolfinx.sensitivities.columns import EquilibriumSensitivity, bone_position_derivatives
 from slab import slab_model
 
 MARKERS = np.array([[8.0, 4.0, 10.0], [20.0, 10.0, 10.0], [31.0, 15.0, 10.0], [15.0, 20.0, 6.0],

@@ -11,9 +11,9 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
-from face_dolfinx.model import load_model
-from face_dolfinx.problem import FaceProblem
-from face_dolfinx.solver import EquilibriumError
+from face_dolfinx.model.folder import load_model
+from face_dolfinx.physics.problem import FaceProblem
+from face_dolfinx.equilibrium.solver import EquilibriumError
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Subject adaptation (face_dolfinx.subject, `build --subject` and `build --surface`): the built-in
+"""Subject adaptation (face_dolfinx.subjects.adaptation, `build --subject` and `build --surface`): the built-in
 5K face warped onto synthetic subjects whose true shape is known."""
 import json
 
@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from face_dolfinx.align import Similarity
+from face_dolfinx.alignment.similarity import Similarity
 from face_dolfinx.capture import Capture, write_capture
-from face_dolfinx.cli import main
-from face_dolfinx.model import load_model
-from face_dolfinx.subject import read_model_arrays
-from face_dolfinx.surface import SkinSurface
-from face_dolfinx.warp import inverted_tets
+from face_dolfinx.cli.main import main
+from face_dolfinx.model.folder import load_model
+from face_dolfinx.subjects.adaptation import read_model_arrays
+from face_dolfinx.alignment.surface import SkinSurface
+from face_dolfinx.subjects.warp import inverted_tets
 from user_capture import user_sites, write_correspondence
 
 # The subject: the template stretched, sheared and moved (an affine map, which the warp's affine

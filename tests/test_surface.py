@@ -1,10 +1,10 @@
-"""Closest points on a triangle surface, normals, and markers embedded in it (face_dolfinx.surface)."""
+"""Closest points on a triangle surface, normals, and markers embedded in it (face_dolfinx.alignment.surface)."""
 
 import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
-from face_dolfinx.surface import MarkerEmbedding, SkinSurface
+from face_dolfinx.alignment.surface import MarkerEmbedding, SkinSurface
 
 TOLERANCE = 1e-12
 

@@ -1,10 +1,10 @@
-"""Subject adaptation by radial basis functions: the warp, fibers and inverted tets (face_dolfinx.warp)."""
+"""Subject adaptation by radial basis functions: the warp, fibers and inverted tets (face_dolfinx.subjects.warp)."""
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from face_dolfinx.warp import RBFWarp, fiber_transform, inverted_tets, signed_volumes, warp_residual
+from face_dolfinx.subjects.warp import RBFWarp, fiber_transform, inverted_tets, signed_volumes, warp_residual
 
 KERNELS = ["thin_plate", "biharmonic"]
 

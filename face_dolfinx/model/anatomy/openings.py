@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from face_dolfinx.anatomy.description import Description
+from .description import Description
 
 # Anchors sit this far (degrees) outside an opening's corner, on the closed skin, so that a
 # marker "at the mouth corner" is on tissue and not in the slit.

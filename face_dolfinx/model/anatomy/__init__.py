@@ -1,9 +1,9 @@
 """The built-in procedural face: a thick mask of flesh over the skull with 32 embedded muscles.
 
 ``build_builtin_face(target_tets)`` returns a model folder (docs/model_format.md) to load with
-``face_dolfinx.model.load_model``. The geometry lives in meshes/builtin_face.toml and is
+``face_dolfinx.model.folder.load_model``. The geometry lives in meshes/builtin_face.toml and is
 explained in docs/builtin_face.md.
 """
-from face_dolfinx.anatomy.builder import build_builtin_face
+from .builder import build_builtin_face
 
 __all__ = ["build_builtin_face"]

@@ -15,7 +15,7 @@ Layout of a fit folder:
   marker_errors.csv frame, one column per marker (mm, empty = gap) } the same bytes however many
   frames.csv        per frame: RMS/max error, GN steps, flags      } ranks, chunks or resumes
   timings.csv       per frame: seconds, split by phase (these differ from run to run)
-  face.xdmf, *.png, renders/   the report (face_dolfinx.report)
+  face.xdmf, *.png, renders/   the report (face_dolfinx.results.report)
 While a run is unfinished the folder holds ``IN_PROGRESS``; it is removed last, with the
 checkpoints (only a resume needs them).
 
@@ -31,10 +31,10 @@ import shutil
 
 import numpy as np
 
-from .bones import AffineMap
-from .fitting import ControlState, FitCheckpoint, FrameResult
-from .problem import Controls
-from .synthetic import load_truth
+from face_dolfinx.model.bones import AffineMap
+from face_dolfinx.fitting.fitter import ControlState, FitCheckpoint, FrameResult
+from face_dolfinx.physics.problem import Controls
+from face_dolfinx.capture.synthetic import load_truth
 
 IN_PROGRESS = "IN_PROGRESS"
 RUN_FILE, TAKE_FILE, TRUTH_FILE = "run.json", "take.json", "truth.npz"

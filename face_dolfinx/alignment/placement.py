@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .align import (AlignmentError, AlignmentQuality, Similarity, align_by_correspondences, align_by_icp)
-from .capture import Capture, frames_with_gaps
+from .similarity import (AlignmentError, AlignmentQuality, Similarity, align_by_correspondences, align_by_icp)
+from face_dolfinx.capture import Capture, frames_with_gaps
 from .surface import SkinSurface
 
 # With marker-site names, a neutral frame whose markers are farther than this (RMS, mm) from their

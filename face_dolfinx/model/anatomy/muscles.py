@@ -13,9 +13,9 @@ whole embedding at a few seconds for 400K tets.
 import numpy as np
 from matplotlib.path import Path as Polygon
 
-from face_dolfinx.anatomy.description import DescriptionError, MuscleSpec
-from face_dolfinx.anatomy.shape import FaceShape
-from face_dolfinx.model import Muscle
+from .description import DescriptionError, MuscleSpec
+from .shape import FaceShape
+from face_dolfinx.model.folder import Muscle
 
 SAMPLES_PER_TET = 27
 PATH_SEGMENTS_PER_PIECE = 8   # a linear muscle's path is refined on the curved surface

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .bones import AffineMap, jaw_pose, rigid_map, rotation
-from .capture import Capture
+from face_dolfinx.model.bones import AffineMap, jaw_pose, rigid_map, rotation
+from face_dolfinx.capture import Capture
 
 SCENARIOS = ("smile", "jaw", "brow", "speech", "mixed", "training")
 

@@ -41,12 +41,12 @@ factorises with MUMPS LU instead of the project's default Cholesky and, having n
 minimise, its line search backtracks on the residual norm.
 
 Usage (lengths in mm, volumes in mm^3, one ``name = value`` line per result):
-    python -m face_dolfinx.benchmarks.land2015 --problem 1 --refine 2
-    mpirun -n 2 python -m face_dolfinx.benchmarks.land2015 --problem 3 --refine 1 --formulation mixed
+    python -m face_dolfinx.verification.land2015 --problem 1 --refine 2
+    mpirun -n 2 python -m face_dolfinx.verification.land2015 --problem 3 --refine 1 --formulation mixed
 
 ``--table`` runs a set of cases, each in its own process on 1 and on 2 ranks, and prints the
 markdown tables of docs/verification.md:
-    python -m face_dolfinx.benchmarks.land2015 --table --problems 2 3 --levels 0 1
+    python -m face_dolfinx.verification.land2015 --table --problems 2 3 --levels 0 1
 """
 import argparse
 from dataclasses import dataclass
@@ -65,7 +65,7 @@ import ufl
 from dolfinx import fem, geometry
 from dolfinx import mesh as dmesh
 
-from face_dolfinx.solver import EquilibriumError, QuasistaticSolver, compile_form
+from face_dolfinx.equilibrium.solver import EquilibriumError, QuasistaticSolver, compile_form
 from forms.flesh import LogVolumetric
 from forms.guccione import ActiveFiberStress, Guccione
 from forms.incompressible import IncompressibilityMultiplier
@@ -444,7 +444,7 @@ def run(problem_number: int, refine: int = 1, formulation: str = "mixed", degree
 
 
 # -- the results table ---------------------------------------------------------------------------
-MODULE = "face_dolfinx.benchmarks.land2015"
+MODULE = "face_dolfinx.verification.land2015"
 # (formulation, degree) rows of the table, in this order.
 TABLE_FORMULATIONS = (("mixed", 2), ("displacement", 2), ("displacement", 1))
 FORMULATION_LABELS = {("mixed", 2): "Taylor-Hood P2/P1",
@@ -526,7 +526,7 @@ def results_table(problem: int, levels: list[int], ranks: list[int], mpiexec: st
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m face_dolfinx.benchmarks.land2015",
+        prog="python -m face_dolfinx.verification.land2015",
         description="Land et al. 2015 cardiac mechanics verification problems.")
     parser.add_argument("--problem", type=int, choices=sorted(PROBLEMS))
     parser.add_argument("--refine", type=int, default=1,

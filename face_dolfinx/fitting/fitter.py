@@ -24,11 +24,11 @@ import time
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from forms import penalties
-from .bones import AffineMap, jaw_pose, rotation
-from .points import PointEvaluator
-from .sensitivity import EquilibriumSensitivity, bone_position_derivatives, frame_columns
-from .solver import EquilibriumError
+from . import penalties
+from face_dolfinx.model.bones import AffineMap, jaw_pose, rotation
+from face_dolfinx.physics.points import PointEvaluator
+from face_dolfinx.sensitivities.columns import EquilibriumSensitivity, bone_position_derivatives, frame_columns
+from face_dolfinx.equilibrium.solver import EquilibriumError
 
 log = logging.getLogger(__name__)
 

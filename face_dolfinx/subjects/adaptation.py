@@ -38,10 +38,10 @@ import h5py
 import numpy as np
 from mpi4py import MPI
 
-from . import model as model_format
-from .align import AlignmentError, Similarity, align_by_correspondences, read_pair_file, similarity_transform
-from .model import JawGeometry, Muscle
-from .surface import SkinSurface
+from face_dolfinx.model import folder as model_format
+from face_dolfinx.alignment.similarity import AlignmentError, Similarity, align_by_correspondences, read_pair_file, similarity_transform
+from face_dolfinx.model.folder import JawGeometry, Muscle
+from face_dolfinx.alignment.surface import SkinSurface
 from .warp import RBFWarp, fiber_transform, inverted_tets
 
 

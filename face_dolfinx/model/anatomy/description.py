@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from face_dolfinx.anatomy.shape import LAYERS, FaceShape, Feature, Table
+from .shape import LAYERS, FaceShape, Feature, Table
 
 MUSCLE_KINDS = ("linear", "sheet", "sphincter")
 ANCHORS = ("mouth_corner", "eye_inner_corner", "eye_outer_corner")

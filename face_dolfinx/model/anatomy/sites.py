@@ -8,9 +8,9 @@ merely on the smooth surface the triangulation approximates.
 import numpy as np
 from matplotlib.tri import Triangulation
 
-from face_dolfinx.anatomy.description import DescriptionError, SiteGroup
-from face_dolfinx.anatomy.domain import PlanarMesh
-from face_dolfinx.anatomy.openings import Opening, anchor_point
+from .description import DescriptionError, SiteGroup
+from .domain import PlanarMesh
+from .openings import Opening, anchor_point
 
 
 def site_angles(groups: tuple[SiteGroup, ...], openings: tuple[Opening, ...]) -> dict[str, np.ndarray]:

@@ -18,10 +18,10 @@ import numpy as np
 from matplotlib.path import Path as Polygon
 from scipy.spatial import cKDTree
 
-from face_dolfinx.anatomy.description import Attachments
-from face_dolfinx.anatomy.domain import PlanarMesh
-from face_dolfinx.anatomy.extrude import LayeredMesh
-from face_dolfinx.anatomy.openings import Opening
+from .description import Attachments
+from .domain import PlanarMesh
+from .extrude import LayeredMesh
+from .openings import Opening
 
 BOUNDARY_IDS = {"cranium": 1, "mandible": 2, "skin": 3, "free": 4}
 

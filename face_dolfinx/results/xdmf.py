@@ -18,7 +18,7 @@ import h5py
 import numpy as np
 from dolfinx import fem, io
 
-from .points import PointEvaluator
+from face_dolfinx.physics.points import PointEvaluator
 
 
 @contextmanager

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from face_dolfinx.anatomy.description import Description, Refinement
-from face_dolfinx.anatomy.openings import Opening
+from .description import Description, Refinement
+from .openings import Opening
 
 GRID_STEP = 0.5            # degrees: resolution of the tabulated size field
 TRIANGLE_AREA = np.sqrt(3.0) / 4.0   # area of an equilateral triangle of unit edge

@@ -56,10 +56,10 @@ import time
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from .align import similarity_transform
-from .bones import AffineMap, jaw_pose, rotation
-from .fitting import TMJ_STEP, FrameResult
-from .sensitivity import EquilibriumSensitivity, bone_position_derivatives
+from face_dolfinx.alignment.similarity import similarity_transform
+from face_dolfinx.model.bones import AffineMap, jaw_pose, rotation
+from .fitter import TMJ_STEP, FrameResult
+from face_dolfinx.sensitivities.columns import EquilibriumSensitivity, bone_position_derivatives
 
 UPPER_FACE_MUSCLES = ("frontalis", "corrugator", "orbicularis_oculi")  # choe_ko2001 section 4.1.2
 

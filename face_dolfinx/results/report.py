@@ -26,10 +26,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
 import numpy as np  # noqa: E402
 
-from .output import XdmfSeries  # noqa: E402
+from .xdmf import XdmfSeries  # noqa: E402
 from .render import render_skin  # noqa: E402
-from .results import FitFolder  # noqa: E402
-from .synthetic import load_truth  # noqa: E402
+from .folder import FitFolder  # noqa: E402
+from face_dolfinx.capture.synthetic import load_truth  # noqa: E402
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from face_dolfinx.anatomy.domain import PlanarMesh
+from .domain import PlanarMesh
 
 
 @dataclass(frozen=True)

@@ -81,8 +81,8 @@ class _ConsoleHandler(logging.StreamHandler):
 
 
 def _model_from_args(args):
-    from .anatomy import build_builtin_face
-    from .model import load_model
+    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.model.folder import load_model
     path = pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets)
     return load_model(path, MPI.COMM_WORLD)
 
@@ -91,8 +91,8 @@ def _coarse_model(args):
     """The model named by ``--coarse``: a number is a built-in face resolution, else a folder."""
     if not args.coarse:
         return None
-    from .anatomy import build_builtin_face
-    from .model import load_model
+    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.model.folder import load_model
     if args.coarse.isdigit():
         if args.model:
             raise SystemExit("--coarse TETS builds the built-in face; with --model give a coarse model folder")
@@ -102,7 +102,7 @@ def _coarse_model(args):
 
 def _expression_controls(model, name: str):
     """Activations (dict) and jaw frame of a named expression stored in the model."""
-    from .bones import AffineMap, jaw_pose
+    from face_dolfinx.model.bones import AffineMap, jaw_pose
     if name not in model.expressions:
         known = ", ".join(sorted(model.expressions))
         raise SystemExit(f"unknown expression {name!r}; the model defines: {known}")
@@ -116,10 +116,10 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
              overwrite: bool = False, render: bool = True, coarse_model=None) -> list[dict]:
     """Solve each expression from the previous equilibrium and write one result folder. With a
     ``coarse_model`` of the same face, each solve starts from the coarse model's equilibrium
-    (``face_dolfinx.coarse``)."""
-    from .coarse import CoarseStart
-    from .output import FaceWriter, atomic_directory
-    from .problem import FaceProblem
+    (``face_dolfinx.equilibrium.coarse``)."""
+    from face_dolfinx.equilibrium.coarse import CoarseStart
+    from face_dolfinx.results.xdmf import FaceWriter, atomic_directory
+    from face_dolfinx.physics.problem import FaceProblem
     comm = MPI.COMM_WORLD
     for name in expressions:  # fail before any work, not halfway through
         _expression_controls(model, name)
@@ -177,10 +177,10 @@ def _root_first(action):
 
 def synth(model, args) -> None:
     """Solve the face along a scenario, sample its marker sites, write capture + truth."""
-    from .capture import write_capture
-    from .fitting import MarkerSet
-    from .problem import FaceProblem
-    from .synthetic import save_truth, synthesize_take, truth_path
+    from face_dolfinx.capture import write_capture
+    from face_dolfinx.fitting.fitter import MarkerSet
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.capture.synthetic import save_truth, synthesize_take, truth_path
     out = pathlib.Path(args.out)
     if out.exists() and not args.overwrite:
         raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
@@ -207,10 +207,10 @@ def synth(model, args) -> None:
 
 def build_subject(args) -> None:
     """Adapt a template model to a subject (a capture's neutral frame, or a surface scan) -> --out."""
-    from .align import read_correspondence_file
-    from .anatomy import build_builtin_face
-    from .capture import read_capture
-    from . import subject
+    from face_dolfinx.alignment.similarity import read_correspondence_file
+    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.capture import read_capture
+    from face_dolfinx.subjects import adaptation as subject
     source = "subject" if args.subject else "surface"
     out = pathlib.Path(args.out)
     template_path = pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets)
@@ -255,7 +255,7 @@ def build_subject(args) -> None:
 @contextlib.contextmanager
 def _naming(path):
     """Subject errors prefixed with the file they concern."""
-    from .subject import SubjectError
+    from face_dolfinx.subjects.adaptation import SubjectError
     try:
         yield
     except SubjectError as error:
@@ -265,14 +265,14 @@ def _naming(path):
 def fit(model, args) -> None:
     """Fit every frame of a take, writing each as soon as it is done; resumes a killed run."""
     from tqdm import tqdm
-    from .bones import AffineMap
-    from .capture import chunk_ranges, read_capture
-    from .fitting import FaceFitter, FitSettings, MarkerSet
-    from .model import load_model
-    from .output import FileNodeOrder
-    from .problem import FaceProblem
-    from .results import FitFolder, FitFolderError, atomic_write_text
-    from .synthetic import load_truth, truth_path
+    from face_dolfinx.model.bones import AffineMap
+    from face_dolfinx.capture import chunk_ranges, read_capture
+    from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet
+    from face_dolfinx.model.folder import load_model
+    from face_dolfinx.results.xdmf import FileNodeOrder
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.results.folder import FitFolder, FitFolderError, atomic_write_text
+    from face_dolfinx.capture.synthetic import load_truth, truth_path
     comm = MPI.COMM_WORLD
     capture_path = pathlib.Path(args.capture)
     # Every input is checked before the result folder exists: a bad input leaves nothing behind.
@@ -390,9 +390,9 @@ def _place_capture(model, capture, args):
 
     Computed on rank 0 and sent to the others, so that every rank fits the same markers.
     """
-    from .align import read_correspondence_file
-    from .placement import place_capture
-    from .surface import SkinSurface
+    from face_dolfinx.alignment.similarity import read_correspondence_file
+    from face_dolfinx.alignment.placement import place_capture
+    from face_dolfinx.alignment.surface import SkinSurface
     skin_points, skin_triangles = model.skin_surface()  # collective
 
     def place():
@@ -414,7 +414,7 @@ def _place_capture(model, capture, args):
 
 def finish_fit(folder) -> None:
     """Tables and report of a fit whose frames are all done, then mark it finished (rank 0)."""
-    from .report import write_report
+    from face_dolfinx.results.report import write_report
     folder.write_tables()
     write_report(folder.path)
     folder.mark_finished()
@@ -425,7 +425,7 @@ def demo(args) -> int:
     motion and 0.5 mm marker noise (its truth kept beside it), fit it, and write the results
     folder with its tables, plots, rendered frames and ParaView series. Rerun after an
     interruption, it continues where it stopped; once finished, it says so."""
-    from .anatomy import build_builtin_face
+    from face_dolfinx.model.anatomy import build_builtin_face
     out = pathlib.Path(args.out)
     verbose = ["--verbose"] if args.verbose else []
     model = ["--model", str(build_builtin_face(target_tets=args.tets))]
@@ -445,8 +445,8 @@ def demo(args) -> int:
 
 
 def _render_expression(problem, path: pathlib.Path, title: str) -> None:
-    from .output import displacement_at
-    from .render import render_skin
+    from face_dolfinx.results.xdmf import displacement_at
+    from face_dolfinx.results.render import render_skin
     points, triangles = problem.model.skin_surface()
     moved = points + displacement_at(problem.u, points)
     if MPI.COMM_WORLD.rank == 0:
@@ -455,11 +455,11 @@ def _render_expression(problem, path: pathlib.Path, title: str) -> None:
 
 def main(argv=None) -> int:
     """Run a command line; errors in what the user gave (files, options) end it with one message."""
-    from .align import AlignmentError
-    from .capture import CaptureError
+    from face_dolfinx.alignment.similarity import AlignmentError
+    from face_dolfinx.capture import CaptureError
     from .config import ConfigError
-    from .model import ModelError
-    from .subject import SubjectError
+    from face_dolfinx.model.folder import ModelError
+    from face_dolfinx.subjects.adaptation import SubjectError
     try:
         return _main(argv)
     except (AlignmentError, CaptureError, ConfigError, ModelError, SubjectError) as error:
@@ -469,7 +469,7 @@ def main(argv=None) -> int:
 def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     """The options of a command line, with those of its --config file under them; and the PETSc
     options (-face_*). Wrong or missing options end it with a usage message (SystemExit 2)."""
-    from .solver import REFRESH_CONTRACTION
+    from face_dolfinx.equilibrium.solver import REFRESH_CONTRACTION
     parser = argparse.ArgumentParser(prog="face-dolfinx", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true")
@@ -640,7 +640,7 @@ def _main(argv=None) -> int:
     _setup_logging(verbose=args.verbose)
 
     if args.command == "build":
-        from .anatomy import build_builtin_face
+        from face_dolfinx.model.anatomy import build_builtin_face
         if args.subject or args.surface:
             build_subject(args)
             return 0
@@ -650,7 +650,7 @@ def _main(argv=None) -> int:
         return 0
 
     if args.command == "report":
-        from .report import write_report
+        from face_dolfinx.results.report import write_report
         _root_first(lambda: write_report(args.folder, rendered_frames=args.renders))
         return 0
     if args.command == "demo":

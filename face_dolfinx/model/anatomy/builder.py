@@ -27,14 +27,14 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from face_dolfinx import model as model_format
-from face_dolfinx.anatomy.attachments import BOUNDARY_IDS, facet_tags
-from face_dolfinx.anatomy.description import Description, DescriptionError, load_description
-from face_dolfinx.anatomy.domain import mesh_parameter_domain
-from face_dolfinx.anatomy.extrude import extrude
-from face_dolfinx.anatomy.muscles import MuscleEmbedder
-from face_dolfinx.anatomy.openings import all_openings
-from face_dolfinx.anatomy.sites import place_on_skin, site_angles
+from face_dolfinx.model import folder as model_format
+from .attachments import BOUNDARY_IDS, facet_tags
+from .description import Description, DescriptionError, load_description
+from .domain import mesh_parameter_domain
+from .extrude import extrude
+from .muscles import MuscleEmbedder
+from .openings import all_openings
+from .sites import place_on_skin, site_angles
 
 log = logging.getLogger(__name__)
 

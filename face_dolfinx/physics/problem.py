@@ -23,8 +23,8 @@ from dolfinx import mesh as dolfinx_mesh
 import dolfinx.fem.petsc as fem_petsc
 
 import forms
-from .bones import AffineMap
-from .solver import REFRESH_CONTRACTION, InversionGuard, QuasistaticSolver, SolveReport, compile_form
+from face_dolfinx.model.bones import AffineMap
+from face_dolfinx.equilibrium.solver import REFRESH_CONTRACTION, InversionGuard, QuasistaticSolver, SolveReport, compile_form
 
 log = logging.getLogger(__name__)
 
@@ -126,7 +126,7 @@ class FaceProblem:
 
     Parameters
     ----------
-    model : FaceModel (``face_dolfinx.model``): mesh, facet tags, muscles, material.
+    model : FaceModel (``face_dolfinx.model.folder``): mesh, facet tags, muscles, material.
     degree : polynomial degree of the displacement (1 or 2; 2 cures most volumetric locking).
     quadrature_degree : defaults to the degree that integrates the P1 forms exactly (1) and
         2 for P2; FFCx's own estimate for these forms is far too high.

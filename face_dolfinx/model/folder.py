@@ -4,7 +4,7 @@
 and checks every part, raising ``ModelError`` with the file and the problem named. It is
 collective: every check that depends on the distributed mesh is reduced over the ranks, so all
 ranks raise together. ``write_model`` writes a folder from plain arrays (serially); the built-in
-face generator (``face_dolfinx.anatomy``) uses it, and so can a user converting their own model.
+face generator (``face_dolfinx.model.anatomy``) uses it, and so can a user converting their own model.
 """
 
 import difflib
@@ -403,7 +403,7 @@ def _check_cells(domain, path: Path) -> None:
 
 def _check_sites(domain, tags, skin_id: int, markers: dict[str, np.ndarray], path: Path) -> None:
     """Every marker within MARKER_TOLERANCE of the skin facets (reduced over the ranks)."""
-    from face_dolfinx.surface import SkinSurface
+    from face_dolfinx.alignment.surface import SkinSurface
 
     if not markers:
         return
