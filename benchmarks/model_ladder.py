@@ -65,10 +65,14 @@ VARIANTS = {
 
 
 def _fit_fast_variant():
-    """``fit --fast`` (face_dolfinx.cli.main.FAST_FIT), the production setting of docs/performance.md."""
-    from face_dolfinx.cli.main import fast_fit_options
-    problem_options, settings = fast_fit_options()
-    return settings, {}, problem_options
+    """``fit --fast`` (``face_dolfinx.tracking.PRESETS["fast"]``), the production setting of docs/performance.md."""
+    import dataclasses
+    from face_dolfinx.fitting.fitter import FitSettings
+    from face_dolfinx.tracking import PRESETS
+    fast = PRESETS["fast"]
+    changed = {f.name: getattr(fast.fit, f.name) for f in dataclasses.fields(FitSettings)
+               if getattr(fast.fit, f.name) != getattr(FitSettings(), f.name)}
+    return changed, {}, fast.problem_options()
 
 
 VARIANTS["fit-fast"] = _fit_fast_variant()
@@ -125,7 +129,8 @@ def run(args) -> None:
     from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.fitting.baselines import ActuationBasis, LinearFitter, LinearizedModel
     from face_dolfinx.model.bones import AffineMap
-    from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet, track
+    from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet
+    from face_dolfinx.tracking import track
     from face_dolfinx.model.folder import load_model
     from face_dolfinx.physics.problem import FaceProblem
     from face_dolfinx.alignment.surface import SkinSurface

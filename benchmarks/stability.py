@@ -430,7 +430,8 @@ def damaged_takes(clean: np.ndarray, seed: int):
 
 
 def damage_study(model, args, write) -> None:
-    from face_dolfinx.fitting.fitter import FaceFitter, MarkerSet, track
+    from face_dolfinx.fitting.fitter import FaceFitter, MarkerSet
+    from face_dolfinx.tracking import track
     from face_dolfinx.physics.problem import FaceProblem
     from face_dolfinx.equilibrium.solver import EquilibriumError
     from face_dolfinx.capture.synthetic import synthesize_take

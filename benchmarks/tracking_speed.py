@@ -1,7 +1,9 @@
 """Warm-started tracking cost per frame on the built-in face, per phase, for solver variants.
 
 Synthesises a speech-like take (60 Hz, 0.5 mm noise, head motion) once at the given resolution,
-then fits the same stretch of it with each ``--variants`` entry, one fresh problem each:
+then tracks the same stretch of it with each ``--variants`` entry through
+``face_dolfinx.tracking.Tracker``, the loop ``run.py fit`` runs (every frame and its checkpoint
+written to a fit folder under ``--out``), one fresh problem each:
 
   fresh     the default loop: Newton assembles and factorises the tangent at every iteration
             until it converges (last correction <= 0.1 mm), a Jacobian per Gauss-Newton step
@@ -22,7 +24,8 @@ then fits the same stretch of it with each ``--variants`` entry, one fresh probl
             from the equilibrium solve's last factor when it was made within 0.3 mm of the
             equilibrium (only the remaining one per frame is exact)
 
-Per frame one JSON line (solver counters: factorisations, residual evaluations, GMRES iterations;
+Per frame one JSON line (seconds = the frame's fit, loop_seconds = wall time from the previous
+frame's end, writing included; solver counters: factorisations, residual evaluations, GMRES iterations;
 phases: sensitivities = factorisation and the dX/dc solves, gn_solve =
 the small least-squares step, equilibrium = the solve at the full step, line_search =
 golden-section trials), per variant a summary over the warm-started frames (every frame but the
@@ -37,6 +40,7 @@ than muscles can, a stress test for the warm start.
 """
 import argparse
 import json
+import pathlib
 import resource
 import time
 
@@ -44,60 +48,68 @@ from mpi4py import MPI
 import numpy as np
 
 LOOSE = dict(newton_tolerance=1e-4)  # mm
-VARIANTS = {  # name: (FaceProblem keywords, FitSettings fields, QuasistaticSolver attributes)
-    "fresh": (dict(reuse_factorization=False), {}, {}),
-    "reuse": (dict(reuse_factorization=True), {}, {}),
-    "reuse-1j": (dict(reuse_factorization=True), dict(max_fresh_jacobians=1), {}),
-    "naive": (dict(reuse_factorization=False), dict(line_search_every_step=True),
-              dict(converging_correction=0.0)),
-    "reuse-1j-loose-gn2": (dict(reuse_factorization=True, **LOOSE), dict(max_fresh_jacobians=1, max_gn_steps=2), {}),
-    "krylov-1j-loose-gn2": (dict(reuse_factorization=True, krylov_on_old_factor=True, **LOOSE),
-                            dict(max_fresh_jacobians=1, max_gn_steps=2), {}),
-}
 
 
-def _fast_variant():
-    """``fit --fast`` (face_dolfinx.cli.main.FAST_FIT) as a variant."""
-    from face_dolfinx.cli.main import fast_fit_options
-    return (*fast_fit_options(), {})
+def _variants() -> dict:
+    """name: (TrackingSettings, further FaceProblem keywords, QuasistaticSolver attributes)."""
+    from face_dolfinx.tracking import PRESETS, TrackingSettings
+    from face_dolfinx.fitting.fitter import FitSettings
+    reuse = dict(reuse_factorization=True)
+    return {
+        "fresh": (PRESETS["default"], {}, {}),
+        "reuse": (TrackingSettings(**reuse), {}, {}),
+        "reuse-1j": (TrackingSettings(FitSettings(max_fresh_jacobians=1), **reuse), {}, {}),
+        "naive": (TrackingSettings(FitSettings(line_search_every_step=True)), {}, dict(converging_correction=0.0)),
+        "reuse-1j-loose-gn2": (TrackingSettings(FitSettings(max_fresh_jacobians=1, max_gn_steps=2), **reuse, **LOOSE),
+                               {}, {}),
+        "krylov-1j-loose-gn2": (TrackingSettings(FitSettings(max_fresh_jacobians=1, max_gn_steps=2), **reuse, **LOOSE),
+                                dict(krylov_on_old_factor=True), {}),
+        "fast": (PRESETS["fast"], {}, {}),
+    }
 
 
-VARIANTS["fast"] = _fast_variant()
+VARIANT_NAMES = ("fresh", "reuse", "reuse-1j", "naive", "reuse-1j-loose-gn2", "krylov-1j-loose-gn2", "fast")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations")  # QuasistaticSolver's
 PHASES = ("sensitivities", "gn_solve", "equilibrium", "line_search")
 
 
-def fit_variant(name, model, sites, capture, truth, args, comm) -> dict:
-    from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet, track
-    from face_dolfinx.physics.problem import FaceProblem
+def fit_variant(name, model, capture, placement, truth, args, comm, out) -> dict:
+    """Track the take with one variant through ``face_dolfinx.tracking.Tracker`` (the loop of
+    ``run.py fit``: every frame and its checkpoint written to a fit folder)."""
+    from face_dolfinx.tracking import Tracker
 
-    problem_options, settings, solver_attributes = VARIANTS[name]
-    problem = FaceProblem(model, **problem_options)
+    settings, problem_options, solver_attributes = _variants()[name]
+    settings = settings.updated(dict(mode=args.mode, gn_steps=args.gn_steps))
+    tracker = Tracker(model, settings, problem_options=problem_options)
+    problem = tracker.problem
     for attribute, value in solver_attributes.items():
         setattr(problem.solver, attribute, value)
-    fitter = FaceFitter(problem, MarkerSet(problem, sites),
-                        FitSettings(**{**dict(mode=args.mode, max_gn_steps=args.gn_steps), **settings}))
     rows = []
     counted = dict.fromkeys(COUNTERS, 0)
+    last = [time.perf_counter()]
 
     def report(result):
+        now = time.perf_counter()
         counts = {}
         for counter in COUNTERS:
             counts[counter] = getattr(problem.solver, counter) - counted[counter]
             counted[counter] = getattr(problem.solver, counter)
         row = dict(variant=name, frame=args.start + result.frame, seconds=round(result.seconds, 2),
-                   gn_steps=result.gn_steps, **counts,
+                   loop_seconds=round(now - last[0], 2), gn_steps=result.gn_steps, **counts,
                    rms_mm=round(result.rms_error, 3),
                    activation_error=round(float(np.abs(result.activations - truth.activations[result.frame]).max()), 3),
                    **{k: round(v, 2) for k, v in result.phases.items()})
+        last[0] = now
         rows.append(row)
         if comm.rank == 0:
             print(json.dumps(row), flush=True)
 
-    track(fitter, capture.positions, on_frame=report)
+    last[0] = time.perf_counter()
+    tracker.track(capture, placement, out / name, overwrite=True, on_frame=report, progress=False)
     warm = rows[1:]
     return dict(variant=name, first_frame_s=rows[0]["seconds"],
                 warm_mean_s=round(float(np.mean([r["seconds"] for r in warm])), 2),
+                warm_mean_loop_s=round(float(np.mean([r["loop_seconds"] for r in warm])), 2),
                 **{"warm_" + c: round(float(np.mean([r[c] for r in warm])), 1) for c in COUNTERS},
                 warm_phases_s={k: round(float(np.mean([r[k] for r in warm])), 2) for k in PHASES},
                 warm_mean_rms_mm=round(float(np.mean([r["rms_mm"] for r in warm])), 3),
@@ -114,26 +126,31 @@ def main():
     parser.add_argument("--start", type=int, default=80, help="first fitted frame of the take")
     parser.add_argument("--mode", default="exact", choices=("exact", "paper"))
     parser.add_argument("--gn-steps", type=int, default=3)
-    parser.add_argument("--variants", nargs="+", default=["fresh", "reuse"], choices=tuple(VARIANTS))
+    parser.add_argument("--variants", nargs="+", default=["fresh", "reuse"], choices=VARIANT_NAMES)
+    parser.add_argument("--out", default="runs/tracking_speed", help="folder for the variants' fit folders")
     args = parser.parse_args()
 
-    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.alignment.placement import place_on_model
+    from face_dolfinx.capture.synthetic import synthesize_take
     from face_dolfinx.fitting.fitter import MarkerSet
+    from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.model.folder import load_model
     from face_dolfinx.physics.problem import FaceProblem
-    from face_dolfinx.capture.synthetic import synthesize_take
 
     comm = MPI.COMM_WORLD
     model = load_model(build_builtin_face(args.tets), comm)
-    sites = np.array(list(model.markers.values()))
+    names = list(model.markers)
+    sites = np.array([model.markers[name] for name in names])
     truth_problem = FaceProblem(model, reuse_factorization=True)
     t0 = time.perf_counter()
-    capture, truth = synthesize_take(truth_problem, MarkerSet(truth_problem, sites), model, "speech",
+    capture, truth = synthesize_take(truth_problem, MarkerSet(truth_problem, sites, names=names), model, "speech",
                                      n_frames=args.take_frames, noise=0.5,
                                      frames=range(args.start, args.start + args.frames))
     synth_seconds = time.perf_counter() - t0
     del truth_problem
-    summaries = [fit_variant(name, model, sites, capture, truth, args, comm) for name in args.variants]
+    placement = place_on_model(model, capture)  # the take is at the model's marker sites
+    out = pathlib.Path(args.out)
+    summaries = [fit_variant(name, model, capture, placement, truth, args, comm, out) for name in args.variants]
     memory = comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, op=MPI.SUM) / 1024**2
     if comm.rank == 0:
         base = summaries[0]

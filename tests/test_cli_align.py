@@ -1,6 +1,5 @@
 """fit on a user's own capture: markers with their own names in their own frame, aligned by
 correspondences or ICP; and every bad input stopped with one message before a result folder exists."""
-import argparse
 import json
 import logging
 import math
@@ -111,12 +110,11 @@ def test_icp_alignment_without_names(model, still_take, shared_dir, capsys):
 def test_doubtful_alignments_are_warned_about(model, still_take, caplog):
     """ICP of a head 1.4 x the model's (implausible scale), and marker-site names on a capture
     that is not in model coordinates: the fit would go on, with a warning saying what to do."""
-    from face_dolfinx.cli.main import _place_capture
+    from face_dolfinx.alignment.placement import place_on_model
     _, _, names, positions = still_take
     big = Capture(names, LAB.apply(1.4 * positions), 60.0)
-    options = argparse.Namespace(correspondence=None, neutral_frame=0)
     with caplog.at_level(logging.INFO, logger="face_dolfinx"):
-        placement = _place_capture(model, big, options)
+        placement = place_on_model(model, big)
     assert placement.method == "icp" and placement.doubtful
     assert "scale" in placement.quality.verdict and "outside the plausible range" in placement.quality.verdict
     warning = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -126,7 +124,7 @@ def test_doubtful_alignments_are_warned_about(model, still_take, caplog):
     sites = np.array(list(model.markers.values()))
     lab = Capture(list(model.markers), LAB.apply(np.stack([sites, sites])), 60.0)
     with caplog.at_level(logging.INFO, logger="face_dolfinx"):
-        placement = _place_capture(model, lab, options)
+        placement = place_on_model(model, lab)
     assert placement.method == "model_sites" and placement.doubtful
     warning = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warning) == 1 and "does not look like it is in model coordinates" in warning[0]

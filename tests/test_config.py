@@ -5,7 +5,8 @@ import pathlib
 from mpi4py import MPI
 import pytest
 
-from face_dolfinx.cli.main import FAST_FIT, main, parse_arguments
+from face_dolfinx.cli.main import main, parse_arguments, tracking_settings
+from face_dolfinx.tracking import PRESETS
 
 
 @pytest.fixture
@@ -40,7 +41,8 @@ tets = 9000
     assert (args.capture, args.gn_steps, args.neutral_frame, args.correspondence) == \
         ("takes/session1.c3d", 2, 12, "session1.toml")
     assert args.smoothness == 2.0 and isinstance(args.smoothness, float)
-    assert (args.tets, args.out, args.verbose, args.mode) == (7000, "results/session1", True, "exact")
+    assert (args.tets, args.out, args.verbose) == (7000, "results/session1", True)
+    assert tracking_settings(args).fit.mode == "exact"
     args, _ = parse_arguments(["fit", "other.trc", "--config", str(config), "--out", "here"])
     assert (args.capture, args.out) == ("other.trc", "here")
     args, _ = parse_arguments(["build", "--config", str(config)])
@@ -50,14 +52,18 @@ tets = 9000
     fast_file = write(shared_tmp / "fast.toml", "[fit]\ncapture = 't.trc'\nfast = true\ngn-steps = 5\n"
                                                 "newton-tolerance = 1e-3\n")
     from_file, _ = parse_arguments(["fit", "--config", str(fast_file)])
+    fast = PRESETS["fast"]
     for args in (from_flag, from_file):
-        assert (args.gn_steps, args.newton_tolerance) == (5, 1e-3)
-        assert (args.reuse_factorization, args.refresh_contraction, args.approximate_jacobians) == \
-            (FAST_FIT["reuse_factorization"], FAST_FIT["refresh_contraction"], FAST_FIT["approximate_jacobians"])
-        assert args.line_search_iterations == FAST_FIT["line_search_iterations"] == 3
-    args, _ = parse_arguments(["fit", "take.trc"])
-    assert (args.reuse_factorization, args.approximate_jacobians, args.gn_steps) == (False, 0.0, 3)
-    assert args.line_search_iterations == 1
+        settings = tracking_settings(args)
+        assert (settings.fit.max_gn_steps, settings.newton_tolerance) == (5, 1e-3)
+        assert (settings.reuse_factorization, settings.refresh_contraction, settings.fit.approximate_jacobian_within) \
+            == (fast.reuse_factorization, fast.refresh_contraction, fast.fit.approximate_jacobian_within) \
+            == (True, 0.5, 0.3)
+        assert settings.line_search_iterations == fast.line_search_iterations == 3
+    settings = tracking_settings(parse_arguments(["fit", "take.trc"])[0])
+    assert (settings.reuse_factorization, settings.fit.approximate_jacobian_within, settings.fit.max_gn_steps) \
+        == (False, 0.0, 3)
+    assert settings.line_search_iterations == 1
     args, _ = parse_arguments(["build", "--config", str(config), "--tets", "3000"])
     assert args.tets == 3000
 

@@ -147,7 +147,7 @@ def slab_take(model, n_frames=6):
 def test_tracking_warm_start_and_chunks():
     """Sequential tracking recovers every frame; two independent chunks give the same answers."""
     from face_dolfinx.capture import chunk_ranges
-    from face_dolfinx.fitting.fitter import track
+    from face_dolfinx.tracking import track
     model = slab_model()
     sites, positions, activations = slab_take(model)
     settings = dict(first_frame_gn_steps=10, max_gn_steps=4, relative_decrease=1e-8)

@@ -15,12 +15,18 @@ material point on the skin and its offset, which is what ``fitting.MarkerSet`` t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import logging
+import pathlib
 
 import numpy as np
 
-from .similarity import (AlignmentError, AlignmentQuality, Similarity, align_by_correspondences, align_by_icp)
 from face_dolfinx.capture import Capture, frames_with_gaps
+from face_dolfinx.parallel import root_first
+from .similarity import (AlignmentError, AlignmentQuality, Similarity, align_by_correspondences, align_by_icp,
+                         read_correspondence_file)
 from .surface import SkinSurface
+
+log = logging.getLogger(__name__)
 
 # With marker-site names, a neutral frame whose markers are farther than this (RMS, mm) from their
 # sites is not in model coordinates: a face's expressions move markers by millimetres, a capture in
@@ -133,6 +139,33 @@ def place_capture(capture: Capture, neutral_frame: int, skin: SkinSurface, model
         embedding = skin.embed(transform.apply(neutral), names)
     return CapturePlacement(method, frame, transform, names, embedding.positions(skin.points) - embedding.offsets,
                             embedding.offsets, quality, residuals, details)
+
+
+def place_on_model(model, capture: Capture, neutral_frame: int = 0,
+                   correspondence: dict[str, str] | str | pathlib.Path | None = None) -> CapturePlacement:
+    """``place_capture`` for a loaded model (collective): computed on rank 0 and sent to the other
+    ranks, so that every rank fits the same markers; logged, with a warning when doubtful.
+    ``correspondence`` is a mapping or a correspondence file (``read_correspondence_file``)."""
+    skin_points, skin_triangles = model.skin_surface()  # collective
+    comm = model.mesh.comm
+
+    def place():
+        pairs = correspondence
+        if isinstance(pairs, (str, pathlib.Path)):
+            pairs = read_correspondence_file(pairs)
+        return place_capture(capture, neutral_frame, SkinSurface(skin_points, skin_triangles),
+                             model.markers, model.landmarks, pairs)
+    placement = root_first(place, comm)
+    log.info("%s", placement.summary())
+    if placement.doubtful:
+        reasons = (placement.details["warning"] if placement.quality is None
+                   else placement.quality.verdict.removeprefix("doubtful: "))
+        advice = ("check the correspondences" if placement.method == "correspondence" else
+                  "give --correspondence (capture marker -> model landmark) for a reliable alignment")
+        log.warning("the alignment of %s to model %s is doubtful: %s. The fit goes on, but its results are "
+                    "only as good as the alignment: %s, or adapt the model to the subject (build --subject)",
+                    capture.source, model.name, reasons, advice)
+    return placement
 
 
 def _at_model_sites(names, neutral, frame, model_markers) -> CapturePlacement:

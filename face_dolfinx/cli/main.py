@@ -23,25 +23,9 @@ import time
 from mpi4py import MPI
 import numpy as np
 
+from face_dolfinx.parallel import root_first
+
 log = logging.getLogger("face_dolfinx")
-
-# ``fit --fast``: measured at 404K tets on 2 cores (docs/performance.md, tracking_speed.py's
-# ``fast`` variant) against the naive loop, with the same marker and activation errors on a 60 Hz take.
-FAST_FIT = dict(reuse_factorization=True, refresh_contraction=0.5, fresh_jacobians=1,
-                approximate_jacobians=0.3, newton_tolerance=1e-2, gn_steps=2, line_search_iterations=3)
-
-
-# ``fit`` options that are FaceProblem keywords of the same name.
-PROBLEM_OPTIONS = ("reuse_factorization", "refresh_contraction", "newton_tolerance", "line_search_iterations")
-
-
-def fast_fit_options() -> tuple[dict, dict]:
-    """``fit --fast`` as (FaceProblem keywords, FitSettings fields), for code that builds its own fitter."""
-    return ({name: FAST_FIT[name] for name in PROBLEM_OPTIONS},
-            dict(max_fresh_jacobians=FAST_FIT["fresh_jacobians"],
-                 approximate_jacobian_within=FAST_FIT["approximate_jacobians"],
-                 max_gn_steps=FAST_FIT["gn_steps"]))
-
 
 def _setup_logging(folder: pathlib.Path | None = None, verbose: bool = False) -> None:
     """Log to the console and (optionally) ``folder``/run.log, from rank 0 only."""
@@ -160,21 +144,6 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
     return rows
 
 
-def _root_first(action):
-    """Run ``action`` on rank 0 and re-raise its exception on every rank."""
-    comm = MPI.COMM_WORLD
-    value, error = None, None
-    if comm.rank == 0:
-        try:
-            value = action()
-        except Exception as exc:  # every rank must stop, not only rank 0
-            error = exc
-    error = comm.bcast(error, root=0)
-    if error is not None:
-        raise error
-    return comm.bcast(value, root=0)
-
-
 def synth(model, args) -> None:
     """Solve the face along a scenario, sample its marker sites, write capture + truth."""
     from face_dolfinx.capture import write_capture
@@ -201,7 +170,7 @@ def synth(model, args) -> None:
         out.parent.mkdir(parents=True, exist_ok=True)
         write_capture(capture, out)
         save_truth(truth_path(out), truth, model.muscle_names)
-    _root_first(write)
+    root_first(write)
     log.info("wrote %s (%d frames, %d markers) and its truth %s", out, args.frames, len(names), truth_path(out))
 
 
@@ -247,7 +216,7 @@ def build_subject(args) -> None:
                 f"max {adaptation.max:.3f} mm ({worst}) from the subject's {len(adaptation.distances)} {what}; "
                 f"{adaptation.iterations} matching rounds"
                 f"{'' if adaptation.record['settled'] else ' (matches still sliding along the skin)'}")
-    log.info("%s", _root_first(adapt))
+    log.info("%s", root_first(adapt))
     if MPI.COMM_WORLD.rank == 0:
         print(out.resolve())
 
@@ -262,162 +231,53 @@ def _naming(path):
         raise SubjectError(f"{path}: {error}") from None
 
 
+def tracking_settings(args) -> "TrackingSettings":
+    """The fit command's settings: its preset (``--fast`` or the default), with every option given on
+    the command line or in the --config file in place of the preset's."""
+    from face_dolfinx.tracking import PRESETS, RECORD_FIELDS, SettingError
+    preset = PRESETS["fast" if args.fast else "default"]
+    try:
+        return preset.updated({key: getattr(args, key) for key in RECORD_FIELDS})
+    except SettingError as error:
+        raise SystemExit(f"--{error.key.replace('_', '-')} {error.value}: {error.requirement}") from None
+
+
 def fit(model, args) -> None:
-    """Fit every frame of a take, writing each as soon as it is done; resumes a killed run."""
-    from tqdm import tqdm
-    from face_dolfinx.model.bones import AffineMap
+    """Fit every frame of a take into a results folder (``face_dolfinx.tracking.Tracker``)."""
+    from face_dolfinx.alignment.placement import place_on_model
     from face_dolfinx.capture import chunk_ranges, read_capture
-    from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet
-    from face_dolfinx.model.folder import load_model
-    from face_dolfinx.results.xdmf import FileNodeOrder
-    from face_dolfinx.physics.problem import FaceProblem
-    from face_dolfinx.results.folder import FitFolder, FitFolderError, atomic_write_text
-    from face_dolfinx.capture.synthetic import load_truth, truth_path
+    from face_dolfinx.capture.synthetic import truth_path
+    from face_dolfinx.results.folder import FitFolderError
+    from face_dolfinx.tracking import Tracker
     comm = MPI.COMM_WORLD
     capture_path = pathlib.Path(args.capture)
     # Every input is checked before the result folder exists: a bad input leaves nothing behind.
     capture = read_capture(capture_path, units=args.units, up_axis=args.up_axis,
                            check_scale=not args.no_scale_check)
-    placement = _place_capture(model, capture, args)
-    capture = placement.aligned(capture)
+    placement = place_on_model(model, capture, args.neutral_frame, args.correspondence)
     truth_file = pathlib.Path(args.truth) if args.truth else truth_path(capture_path)
-    truth = load_truth(truth_file) if truth_file.exists() else None
-    if not args.newton_tolerance > 0:
-        raise SystemExit(f"--newton-tolerance {args.newton_tolerance}: give a positive distance in mm")
-    if not 0 < args.refresh_contraction < 1:
-        raise SystemExit(f"--refresh-contraction {args.refresh_contraction}: give a factor between 0 and 1")
-    if args.line_search_iterations < 1:
-        raise SystemExit(f"--line-search-iterations {args.line_search_iterations}: give 1 or more")
-    if not args.approximate_jacobians >= 0:
-        raise SystemExit(f"--approximate-jacobians {args.approximate_jacobians}: give a distance in mm, 0 or more")
-    if args.fresh_jacobians is not None and args.fresh_jacobians < 0:
-        raise SystemExit(f"--fresh-jacobians {args.fresh_jacobians}: give 0 or more fresh Jacobians per frame")
-    settings = FitSettings(mode=args.mode, max_gn_steps=args.gn_steps,
-                           temporal_smoothness=args.smoothness, max_fresh_jacobians=args.fresh_jacobians,
-                           approximate_jacobian_within=args.approximate_jacobians)
-    run = dict(capture=str(capture_path.resolve()), model=str(model.path), mode=args.mode,
-               gn_steps=args.gn_steps, smoothness=args.smoothness, frames=capture.n_frames,
-               chunks=args.chunks, reuse_factorization=args.reuse_factorization,
-               newton_tolerance=args.newton_tolerance, refresh_contraction=args.refresh_contraction,
-               fresh_jacobians=args.fresh_jacobians, approximate_jacobians=args.approximate_jacobians,
-               line_search_iterations=args.line_search_iterations)
-    run.update(alignment=placement.method, neutral_frame=placement.neutral_frame,
-               correspondence=str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None)
-    alignment_record = json.dumps(placement.to_json(), indent=2)
-    take = dict(muscle_names=model.muscle_names, marker_names=list(capture.marker_names),
-                times=[float(t) for t in capture.times])
+    settings = tracking_settings(args)
+    chunks = len(chunk_ranges(capture.n_frames, args.chunks))
+    if args.chunk is not None and not 0 <= args.chunk < chunks:
+        raise SystemExit(f"--chunk {args.chunk}: the take has chunks 0..{chunks - 1}")
+    tracker = Tracker(model, settings, rank_groups=1 if args.chunk is not None else min(chunks, comm.size))
+    correspondence = str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None
     try:
-        folder, already_finished = _root_first(lambda: FitFolder.prepare(
-            args.out, run, take, truth_file if truth is not None else None, overwrite=args.overwrite))
+        folder = tracker.open_folder(args.out, capture, placement, chunks=args.chunks, overwrite=args.overwrite,
+                                     truth_file=truth_file if truth_file.exists() else None,
+                                     extra=dict(correspondence=correspondence))
     except FitFolderError as error:
         raise SystemExit(str(error)) from None
-    if already_finished:
+    if folder.finished:
         log.info("%s already holds this fit, finished: nothing to do (run.py report %s rebuilds its "
                  "plots; --overwrite fits again)", folder.path, folder.path)
         return
-    _root_first(lambda: atomic_write_text(folder.path / "alignment.json", alignment_record))
     _setup_logging(folder.path, verbose=args.verbose)
-    done = set(range(capture.n_frames)) - set(_root_first(folder.missing_frames))
-    chunks = chunk_ranges(capture.n_frames, args.chunks)
-    if args.chunk is not None:  # one chunk in this (separate) process
-        if not 0 <= args.chunk < len(chunks):
-            raise SystemExit(f"--chunk {args.chunk}: the take has chunks 0..{len(chunks) - 1}")
-        chunks = [chunks[args.chunk]]
-    # MPI ranks split into groups, each fitting whole chunks on its own copy of the mesh.
-    groups = min(len(chunks), comm.size)
-    group = comm.rank * groups // comm.size
-    group_comm = comm.Split(group, comm.rank) if groups > 1 else comm
-    group_model = load_model(model.path, group_comm) if groups > 1 else model
-    problem = FaceProblem(group_model, **{name: getattr(args, name) for name in PROBLEM_OPTIONS})
-    node_order = FileNodeOrder(problem.V)
-    markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
-    # A chunk is fitted from its first unfinished frame on, so that every frame after it starts
-    # from exactly the state an uninterrupted run would have had.
-    starts = {chunk: min((f for f in chunk if f not in done), default=None) for chunk in chunks[group::groups]}
-    todo = sum(chunk.stop - start for chunk, start in starts.items() if start is not None)
-    if args.stop_after is not None:
-        todo = min(todo, args.stop_after)
-    fitted = 0
-    with tqdm(total=todo, unit="frame", desc="fit", dynamic_ncols=True,
-              disable=True if comm.rank != 0 else None) as progress:  # None: only on a terminal
-        for chunk, start in starts.items():
-            if start is None or fitted == todo:
-                continue
-            fitter = FaceFitter(problem, markers, settings)
-            problem.u.x.array[:] = 0.0
-            problem.solve(activations=np.zeros(problem.num_muscles), cranium=AffineMap(), jaw=AffineMap())
-            if start > chunk.start:
-                checkpoint = folder.load_checkpoint(start - 1, node_order)
-                if checkpoint is None:
-                    log.warning("%s has no checkpoint after frame %d: refitting from frame %d", folder.path,
-                                start - 1, chunk.start)
-                    start = chunk.start
-                else:
-                    fitter.restore(checkpoint)
-                    log.info("resuming %s at frame %d (%d frames already done)", folder.path, start, len(done))
-            for frame in range(start, chunk.stop):
-                if fitted == todo:  # --stop-after
-                    break
-                result = fitter.fit_frame(capture.positions[frame], frame=frame)
-                simulated = markers.positions(problem.u.x.array, fitter.state.cranium)
-                displacement = node_order.gather(problem.u.x.array)
-                # Checkpoint first, frame record last: a frame on disk always has its checkpoint.
-                folder.save_checkpoint(frame, fitter.checkpoint(), node_order)
-                if group_comm.rank == 0:
-                    folder.write_frame(result, capture.positions[frame], simulated, displacement)
-                    if frame > chunk.start:
-                        folder.drop_checkpoint(frame - 1)
-                fitted += 1
-                error = "" if truth is None else \
-                    f", activation error {np.abs(result.activations - truth.activations[frame]).max():.3f}"
-                log.info("frame %d/%d: marker RMS %.3f mm (max %.3f), %d GN steps, %.1f s%s%s", frame + 1,
-                         capture.n_frames, result.rms_error, result.max_error, result.gn_steps,
-                         result.seconds, error, f" [{result.flag}]" if result.flag else "")
-                progress.set_postfix_str(f"frame {frame}: {result.seconds:.1f} s, RMS {result.rms_error:.3f} mm",
-                                         refresh=False)
-                progress.update()
-    comm.barrier()
-    missing = _root_first(folder.missing_frames)
-    if missing:
-        log.info("%d frames still to fit; rerun the same command to continue %s", len(missing), folder.path)
+    run = tracker.run(folder, capture, placement, chunk=args.chunk, stop_after=args.stop_after)
+    if not run.finished:
+        log.info("%d frames still to fit; rerun the same command to continue %s", len(run.missing), folder.path)
         return
-    _root_first(lambda: finish_fit(folder))
     log.info("results: %s (plots: *.png and renders/; ParaView: face.xdmf)", folder.path.resolve())
-
-
-def _place_capture(model, capture, args):
-    """The capture's alignment to the model and its markers on the skin (``placement``), logged.
-
-    Computed on rank 0 and sent to the others, so that every rank fits the same markers.
-    """
-    from face_dolfinx.alignment.similarity import read_correspondence_file
-    from face_dolfinx.alignment.placement import place_capture
-    from face_dolfinx.alignment.surface import SkinSurface
-    skin_points, skin_triangles = model.skin_surface()  # collective
-
-    def place():
-        correspondence = read_correspondence_file(args.correspondence) if args.correspondence else None
-        return place_capture(capture, args.neutral_frame, SkinSurface(skin_points, skin_triangles),
-                             model.markers, model.landmarks, correspondence)
-    placement = _root_first(place)
-    log.info("%s", placement.summary())
-    if placement.doubtful:
-        reasons = (placement.details["warning"] if placement.quality is None
-                   else placement.quality.verdict.removeprefix("doubtful: "))
-        advice = ("check the correspondences" if placement.method == "correspondence" else
-                  "give --correspondence (capture marker -> model landmark) for a reliable alignment")
-        log.warning("the alignment of %s to model %s is doubtful: %s. The fit goes on, but its results are "
-                    "only as good as the alignment: %s, or adapt the model to the subject (build --subject)",
-                    capture.source, model.name, reasons, advice)
-    return placement
-
-
-def finish_fit(folder) -> None:
-    """Tables and report of a fit whose frames are all done, then mark it finished (rank 0)."""
-    from face_dolfinx.results.report import write_report
-    folder.write_tables()
-    write_report(folder.path)
-    folder.mark_finished()
 
 
 def demo(args) -> int:
@@ -469,7 +329,7 @@ def main(argv=None) -> int:
 def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     """The options of a command line, with those of its --config file under them; and the PETSc
     options (-face_*). Wrong or missing options end it with a usage message (SystemExit 2)."""
-    from face_dolfinx.equilibrium.solver import REFRESH_CONTRACTION
+    from face_dolfinx.tracking import PRESETS
     parser = argparse.ArgumentParser(prog="face-dolfinx", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true")
@@ -556,12 +416,15 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--no-scale-check", action="store_true",
                    help="accept markers that do not span a face's 40-600 mm (needs the units stated, by the "
                         "file or --units)")
-    p.add_argument("--mode", choices=("exact", "paper"), default="exact")
-    p.add_argument("--gn-steps", type=int, default=3, help="Gauss-Newton steps per frame")
-    p.add_argument("--smoothness", type=float, default=0.0,
-                   help="temporal smoothness weight on activations (off by default)")
+    # The tracking settings default to None: the preset (--fast or the default) fills in what
+    # neither the command line nor the --config file gives.
+    default = PRESETS["default"]
+    p.add_argument("--mode", choices=("exact", "paper"), help=f"formulation (default {default.fit.mode})")
+    p.add_argument("--gn-steps", type=int, help=f"Gauss-Newton steps per frame (default {default.fit.max_gn_steps})")
+    p.add_argument("--smoothness", type=float,
+                   help="temporal smoothness weight on activations (default 0: off)")
     p.add_argument("--truth", help="truth .npz of a synthetic take (default: next to the capture)")
-    p.add_argument("--reuse-factorization", action="store_true",
+    p.add_argument("--reuse-factorization", action="store_true", default=None,
                    help="modified Newton: keep the last MUMPS factor across Newton iterations and "
                         "frames, refactorising only when an iteration cuts the residual less than "
                         "4-fold (faster on large meshes; a resumed run then matches an uninterrupted "
@@ -570,25 +433,26 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="fresh Jacobians per warm frame after its first Gauss-Newton step, which "
                         "reuses the last frame's (default: one per step; 1 with "
                         "--reuse-factorization is the fast setting of docs/performance.md)")
-    p.add_argument("--newton-tolerance", type=float, default=1e-8, metavar="MM",
+    p.add_argument("--newton-tolerance", type=float, metavar="MM",
                    help="Newton stops once a correction moves no node further than this (default "
                         "1e-8 mm; 1e-4 and 1e-3 mm changed no fitted marker or activation error in "
                         "docs/performance.md and save iterations)")
-    p.add_argument("--refresh-contraction", type=float, default=REFRESH_CONTRACTION, metavar="R",
+    p.add_argument("--refresh-contraction", type=float, metavar="R",
                    help=f"with --reuse-factorization: refactorise when a Newton iteration cuts the "
-                        f"residual by less than this factor (default {REFRESH_CONTRACTION})")
-    p.add_argument("--line-search-iterations", type=int, default=1, metavar="N",
+                        f"residual by less than this factor (default {default.refresh_contraction})")
+    p.add_argument("--line-search-iterations", type=int, metavar="N",
                    help="secant iterations of Newton's line search (default 1; 3 cut the slowest "
                         "frames at 404K tets, where the lips move fast, from 94 to 21 s)")
-    p.add_argument("--approximate-jacobians", type=float, default=0.0, metavar="MM",
+    p.add_argument("--approximate-jacobians", type=float, metavar="MM",
                    help="a Jacobian may use the last factor of the equilibrium solve if it was made at "
                         "a state this close to the equilibrium, instead of a new factorisation "
                         "(default 0: always the exact tangent)")
     p.add_argument("--fast", action="store_true",
-                   help="the fast setting of docs/performance.md for takes at capture rate: "
-                        + " ".join(f"--{k.replace('_', '-')}" + ("" if v is True else f" {v}")
-                                   for k, v in FAST_FIT.items())
-                        + " (options given here win)")
+                   help="the preset for takes at capture rate (face_dolfinx.tracking, docs/performance.md): "
+                        + " ".join(f"--{key.replace('_', '-')}" + ("" if value is True else f" {value}")
+                                   for key, value in PRESETS["fast"].record().items()
+                                   if value != default.value(key))
+                        + " (options given here or in --config win)")
     p.add_argument("--chunks", type=int, default=1,
                    help="split the take into independent chunks (each starts from rest); under "
                         "mpirun the ranks share them out")
@@ -600,19 +464,13 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     for command_parser in sub.choices.values():
         command_parser.add_argument("--config", help="TOML file of options (docs/cli.md); flags given here win")
     args, petsc_args = parser.parse_known_args(argv)
-    # Precedence: options given here, then the --config file, then fit --fast, then the defaults.
-    config = None
+    # Precedence: options given here, then the --config file (as defaults), then the preset
+    # (``tracking_settings``), then the defaults.
     if args.config:
         from .config import option_defaults
-        config = option_defaults(args.config, args.command, parser, sub.choices)
-    for fast in (False, True):
-        if fast and not (args.command == "fit" and args.fast):
-            break
-        if fast:
-            sub.choices["fit"].set_defaults(**FAST_FIT)
-        if config:
-            parser.set_defaults(**config[0])
-            sub.choices[args.command].set_defaults(**config[1])
+        main_defaults, command_defaults = option_defaults(args.config, args.command, parser, sub.choices)
+        parser.set_defaults(**main_defaults)
+        sub.choices[args.command].set_defaults(**command_defaults)
         args, petsc_args = parser.parse_known_args(argv)
     for command, positional in (("fit", "capture"), ("simulate", "expressions")):
         if args.command == command and not getattr(args, positional):
@@ -651,7 +509,7 @@ def _main(argv=None) -> int:
 
     if args.command == "report":
         from face_dolfinx.results.report import write_report
-        _root_first(lambda: write_report(args.folder, rendered_frames=args.renders))
+        root_first(lambda: write_report(args.folder, rendered_frames=args.renders))
         return 0
     if args.command == "demo":
         return demo(args)

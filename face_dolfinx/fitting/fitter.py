@@ -638,19 +638,6 @@ def _axis_angle(R: np.ndarray) -> tuple[np.ndarray, float]:
     return axis / np.linalg.norm(axis), angle
 
 
-def track(fitter: FaceFitter, positions: np.ndarray, frames=None, on_frame=None) -> list[FrameResult]:
-    """Fit ``frames`` of ``positions`` (frames, markers, 3) in order, each warm-started from the
-    last; ``on_frame(result)`` is called as soon as a frame is done (e.g. to write it to disk)."""
-    frames = range(len(positions)) if frames is None else frames
-    results = []
-    for frame in frames:
-        result = fitter.fit_frame(positions[frame], frame=frame)
-        results.append(result)
-        if on_frame is not None:
-            on_frame(result)
-    return results
-
-
 @dataclass
 class FitCheckpoint:
     """The warm-start state of a sequence fit after a frame (``FaceFitter.checkpoint``).

@@ -1,0 +1,6 @@
+"""Tracking a take: the frame loop (``Tracker``, ``track``) and its settings (``TrackingSettings``,
+the presets ``PRESETS["default"]`` and ``PRESETS["fast"]``)."""
+from .settings import PRESETS, RECORD_FIELDS, SettingError, TrackingSettings
+from .tracker import Tracker, TrackingRun, finish, track
+
+__all__ = ["PRESETS", "RECORD_FIELDS", "SettingError", "Tracker", "TrackingRun", "TrackingSettings", "finish", "track"]

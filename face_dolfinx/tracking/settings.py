@@ -1,0 +1,101 @@
+"""What decides a tracked take's numbers: the per-frame Gauss-Newton fit and the equilibrium solver.
+
+``TrackingSettings`` joins the fitter's ``FitSettings`` with the ``FaceProblem`` keywords that change
+the solver's iterates. Two named presets:
+
+  ``default``  a fresh tangent at every Newton iteration until it converges, a Jacobian per
+               Gauss-Newton step, Newton to 1e-8 mm: the reference the others are measured against;
+  ``fast``     for takes at capture rate (frames 1/60 s apart): modified Newton keeping its factor
+               while it halves the residual, one fresh Jacobian per warm frame (others from a factor
+               made within 0.3 mm of the equilibrium), 2 Gauss-Newton steps, Newton to 1e-2 mm and 3
+               secant iterations in its line search. Measured at 403,620 tets on 2 cores: 9.96 s per
+               warm frame against 356.5 s for the paper's loop, with the same marker and activation
+               errors (docs/performance.md).
+
+The record of a tracked take (``run.json`` of a fit folder) names each setting as the ``fit``
+command's option does: ``RECORD_FIELDS`` is that one table.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+
+from face_dolfinx.equilibrium.solver import REFRESH_CONTRACTION
+from face_dolfinx.fitting.fitter import FitSettings
+
+# record key (= fit option) -> (where it lives, field name): "fit" in FitSettings, "solver" here.
+RECORD_FIELDS = {
+    "mode": ("fit", "mode"),
+    "gn_steps": ("fit", "max_gn_steps"),
+    "smoothness": ("fit", "temporal_smoothness"),
+    "fresh_jacobians": ("fit", "max_fresh_jacobians"),
+    "approximate_jacobians": ("fit", "approximate_jacobian_within"),
+    "reuse_factorization": ("solver", "reuse_factorization"),
+    "newton_tolerance": ("solver", "newton_tolerance"),
+    "refresh_contraction": ("solver", "refresh_contraction"),
+    "line_search_iterations": ("solver", "line_search_iterations"),
+}
+
+
+class SettingError(ValueError):
+    """A setting out of its range; ``key`` is its record key (the fit option's name)."""
+
+    def __init__(self, key: str, value, requirement: str):
+        super().__init__(f"{key} {value}: {requirement}")
+        self.key, self.value, self.requirement = key, value, requirement
+
+
+@dataclass(frozen=True)
+class TrackingSettings:
+    fit: FitSettings = field(default_factory=FitSettings)
+    # FaceProblem keywords (equilibrium solver); see FaceProblem and docs/performance.md.
+    reuse_factorization: bool = False
+    refresh_contraction: float = REFRESH_CONTRACTION
+    newton_tolerance: float = 1e-8  # mm: Newton stops once no node moves further in a correction
+    line_search_iterations: int = 1
+
+    def __post_init__(self):
+        checks = (
+            ("mode", self.fit.mode in ("exact", "paper"), "use exact or paper"),
+            ("gn_steps", self.fit.max_gn_steps >= 1, "give 1 or more Gauss-Newton steps per frame"),
+            ("smoothness", self.fit.temporal_smoothness >= 0, "give a weight, 0 or more"),
+            ("fresh_jacobians", self.fit.max_fresh_jacobians is None or self.fit.max_fresh_jacobians >= 0,
+             "give 0 or more fresh Jacobians per frame"),
+            ("approximate_jacobians", self.fit.approximate_jacobian_within >= 0,
+             "give a distance in mm, 0 or more"),
+            ("newton_tolerance", self.newton_tolerance > 0, "give a positive distance in mm"),
+            ("refresh_contraction", 0 < self.refresh_contraction < 1, "give a factor between 0 and 1"),
+            ("line_search_iterations", self.line_search_iterations >= 1, "give 1 or more"),
+        )
+        for key, valid, requirement in checks:
+            if not valid:
+                raise SettingError(key, self.value(key), requirement)
+
+    def value(self, key: str):
+        """The setting named by a record key."""
+        where, name = RECORD_FIELDS[key]
+        return getattr(self.fit if where == "fit" else self, name)
+
+    def updated(self, values: dict) -> "TrackingSettings":
+        """These settings with ``values`` (record keys; None: keep) replacing theirs."""
+        fit, solver = {}, {}
+        for key, value in values.items():
+            if value is not None:
+                where, name = RECORD_FIELDS[key]
+                (fit if where == "fit" else solver)[name] = value
+        return replace(self, fit=replace(self.fit, **fit), **solver)
+
+    def record(self) -> dict:
+        """The settings by record key, as a fit folder stores them."""
+        return {key: self.value(key) for key in RECORD_FIELDS}
+
+    def problem_options(self) -> dict:
+        """The ``FaceProblem`` keywords."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "fit"}
+
+
+PRESETS = {
+    "default": TrackingSettings(),
+    "fast": TrackingSettings(
+        FitSettings(max_gn_steps=2, max_fresh_jacobians=1, approximate_jacobian_within=0.3),
+        reuse_factorization=True, refresh_contraction=0.5, newton_tolerance=1e-2, line_search_iterations=3),
+}

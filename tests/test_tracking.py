@@ -1,0 +1,78 @@
+"""Tracking settings and presets: one table between the fit command, the run record and the library."""
+import dataclasses
+
+from mpi4py import MPI
+import pytest
+
+from face_dolfinx.cli.main import parse_arguments, tracking_settings
+from face_dolfinx.fitting.fitter import FitSettings
+from face_dolfinx.model.folder import load_model
+from face_dolfinx.tracking import PRESETS, RECORD_FIELDS, SettingError, Tracker, TrackingSettings
+
+# A value other than the default for every setting, as the command line gives it and as it is kept.
+OTHER_VALUES = dict(mode=("paper", "paper"), gn_steps=("5", 5), smoothness=("0.5", 0.5),
+                    fresh_jacobians=("2", 2), approximate_jacobians=("0.1", 0.1),
+                    reuse_factorization=(None, True), newton_tolerance=("1e-3", 1e-3),
+                    refresh_contraction=("0.3", 0.3), line_search_iterations=("2", 2))
+
+
+@pytest.fixture(scope="module")
+def model(builtin_model_path):
+    return load_model(builtin_model_path, MPI.COMM_WORLD)
+
+
+def test_every_setting_is_a_fit_option_of_the_same_name():
+    assert set(OTHER_VALUES) == set(RECORD_FIELDS)
+    default = PRESETS["default"]
+    for key, (text, value) in OTHER_VALUES.items():
+        assert default.value(key) != value
+        option = [f"--{key.replace('_', '-')}"] + ([text] if text is not None else [])
+        settings = tracking_settings(parse_arguments(["fit", "take.trc", *option])[0])
+        assert settings.value(key) == value
+        assert {k: v for k, v in settings.record().items() if k != key} == \
+            {k: v for k, v in default.record().items() if k != key}
+
+
+def test_default_preset_is_the_library_default_and_fast_differs_where_documented():
+    assert PRESETS["default"] == TrackingSettings(FitSettings())
+    fast = PRESETS["fast"]
+    changed = {key for key in RECORD_FIELDS if fast.value(key) != PRESETS["default"].value(key)}
+    assert changed == {"gn_steps", "fresh_jacobians", "approximate_jacobians", "reuse_factorization",
+                       "newton_tolerance", "refresh_contraction", "line_search_iterations"}
+    assert fast.problem_options() == dict(reuse_factorization=True, refresh_contraction=0.5,
+                                          newton_tolerance=1e-2, line_search_iterations=3)
+
+
+def test_updated_keeps_what_is_none_and_leaves_the_preset_alone():
+    fast = PRESETS["fast"]
+    settings = fast.updated(dict(gn_steps=4, newton_tolerance=None, mode=None))
+    assert settings.fit.max_gn_steps == 4 and settings.newton_tolerance == fast.newton_tolerance
+    assert fast.fit.max_gn_steps == 2  # presets are not changed by their variants
+    assert dataclasses.replace(settings, fit=dataclasses.replace(settings.fit, max_gn_steps=2)) == fast
+
+
+@pytest.mark.parametrize("key, value, requirement", [
+    ("newton_tolerance", 0.0, "give a positive distance in mm"),
+    ("refresh_contraction", 1.0, "give a factor between 0 and 1"),
+    ("line_search_iterations", 0, "give 1 or more"),
+    ("fresh_jacobians", -1, "give 0 or more fresh Jacobians per frame"),
+    ("approximate_jacobians", -0.5, "give a distance in mm, 0 or more"),
+    ("gn_steps", 0, "give 1 or more Gauss-Newton steps per frame"),
+    ("mode", "linear", "use exact or paper"),
+])
+def test_out_of_range_settings_are_refused_naming_the_setting(key, value, requirement):
+    with pytest.raises(SettingError) as refused:
+        PRESETS["default"].updated({key: value})
+    assert (refused.value.key, refused.value.value, refused.value.requirement) == (key, value, requirement)
+    if key == "mode":  # the command line offers only the valid choices
+        return
+    option = f"--{key.replace('_', '-')}"
+    with pytest.raises(SystemExit, match=f"{option} {value}: {requirement}"):
+        tracking_settings(parse_arguments(["fit", "take.trc", option, str(value)])[0])
+
+
+def test_rank_groups_beyond_the_ranks_are_refused(model):
+    with pytest.raises(ValueError, match="rank_groups = 0"):
+        Tracker(model, rank_groups=0)
+    with pytest.raises(ValueError, match="the number of ranks"):
+        Tracker(model, rank_groups=model.mesh.comm.size + 1)
