@@ -274,6 +274,8 @@ def run(args) -> None:
                        failure=failure, factorizations=factorizations,
                        gn_steps=[r.gn_steps for r in results], **score(results, truth, lips)))
             problem = fitter = None
+    from provenance import record
+    record(out, tets=sorted(models), ranks=comm.size)
     if comm.rank == 0:
         print(collect([out]))
 

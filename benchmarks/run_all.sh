@@ -1,43 +1,67 @@
 #!/bin/bash
 # Every benchmark of docs/performance.md, docs/ladder.md and docs/stability.md, one after the other
-# (they time themselves: run nothing else meanwhile), raw results in runs/, then the tables and
-# figures. About 6 hours on the 2-core machine; each stage can be run on its own (see each script).
-#   benchmarks/run_all.sh            # then runs/forward_table.md, runs/ladder_table.md, docs/img/*
+# (they time themselves: run nothing else meanwhile). Each result goes to benchmarks/results/<study>/
+# under the name the docs cite, with an entry in that folder's manifest.json (commit, command,
+# machine, date, tets, ranks; benchmarks/provenance.py); bulky fit folders and takes go to runs/.
+# About 6 hours on the 2-core machine; each stage can be run on its own (see each script).
+#   benchmarks/run_all.sh            # then runs/forward_table.md, runs/*_table*.md, docs/img/*
 set -eu
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-.venv/bin/python}
-MPI2="mpirun -n 2"
+RESULTS=benchmarks/results
 export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1
 mkdir -p runs
+# A command whose standard output (its JSON lines) is the result file $1, recorded in the manifest.
+record() { out=$1; shift; $PYTHON benchmarks/provenance.py run --out "$out" --json-lines -- "$@"; }
+# The same, adding to the result file $1 (which `provenance.py start` emptied).
+add() { out=$1; shift; $PYTHON benchmarks/provenance.py run --out "$out" --json-lines --append -- "$@"; }
 
 # Forward solves: 5K..400K tets, 1 and 2 ranks; at 400K also from the 50K face's equilibrium.
 FORWARD="benchmarks/forward_scaling.py --expressions smile jaw_open pucker"
+forward=$RESULTS/forward/forward_5k-404k_np1-np2.jsonl
+$PYTHON benchmarks/provenance.py start $forward
 for ranks in 1 2; do
-  mpirun -n $ranks $PYTHON $FORWARD --tets 5000 20000 50000 150000 400000 > runs/forward_np$ranks.jsonl
-  mpirun -n $ranks $PYTHON $FORWARD --tets 400000 --coarse 50000 > runs/forward_np${ranks}_coarse.jsonl
+  add $forward mpirun -n $ranks $PYTHON $FORWARD --tets 5000 20000 50000 150000 400000
+  add $forward mpirun -n $ranks $PYTHON $FORWARD --tets 400000 --coarse 50000
 done
-$PYTHON $FORWARD --collect runs/forward_table.md runs/forward_np*.jsonl
+$PYTHON $FORWARD --collect runs/forward_table.md $forward
 
-# Tracking: solver variants at the paper's scale and against the naive loop; layouts of a whole take.
-$MPI2 $PYTHON benchmarks/tracking_speed.py --tets 400000 --frames 4 --variants fast reuse-1j-loose-gn2 naive > runs/tracking_400k.log
-$MPI2 $PYTHON benchmarks/tracking_speed.py --tets 50000 --frames 4 --variants naive fresh reuse-1j > runs/tracking_50k.log
-$PYTHON benchmarks/ranks_and_chunks.py --tets 20000 --frames 120 \
-  --fit-options="--reuse-factorization --fresh-jacobians 1" > runs/ranks_and_chunks.log
-$PYTHON benchmarks/ranks_and_chunks.py --tets 400000 --frames 16 --take-frames 240 --first-frame 80 \
-  --fit-options=--fast > runs/ranks_and_chunks_404k.log
+# Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
+record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
+  mpirun -n 2 $PYTHON benchmarks/tracking_speed.py --tets 400000 --frames 2 --variants fast naive
+record $RESULTS/tracking/tracking_50k_np2_naive_fresh_reuse1j.jsonl \
+  mpirun -n 2 $PYTHON benchmarks/tracking_speed.py --tets 50000 --frames 4 --variants naive fresh reuse-1j
+# A whole take in three layouts (1 rank, 2 ranks, 2 chunks).
+record $RESULTS/ranks_and_chunks/ranks_and_chunks_20k_120frames_reuse1j.jsonl \
+  $PYTHON benchmarks/ranks_and_chunks.py --tets 20000 --frames 120 \
+  --fit-options="--reuse-factorization --fresh-jacobians 1"
+record $RESULTS/ranks_and_chunks/ranks_and_chunks_404k_16frames_fast-ls3.jsonl \
+  $PYTHON benchmarks/ranks_and_chunks.py --tets 400000 --frames 16 --take-frames 240 --first-frame 80 \
+  --fit-options=--fast
 # The fastest speech stretch (frames 114-125) of two takes at 400K, fit --fast with one and with three
-# line-search iterations (docs/performance.md, session 8): per-frame seconds in each timings.csv.
+# line-search iterations: each fit's per-frame seconds (timings.csv) and errors (frames.csv).
 for seed in 0 3; do
   take=runs/speech114_seed$seed.trc
-  $MPI2 $PYTHON run.py synth --tets 400000 --frames 12 --take-frames 240 --first-frame 114 --noise 0.5 \
+  mpirun -n 2 $PYTHON run.py synth --tets 400000 --frames 12 --take-frames 240 --first-frame 114 --noise 0.5 \
     --seed $seed --out $take --overwrite
   for iterations in 1 3; do
-    $MPI2 $PYTHON run.py fit $take --tets 400000 --fast --line-search-iterations $iterations \
-      --out runs/speech114_seed${seed}_ls$iterations --overwrite
+    fit="mpirun -n 2 $PYTHON run.py fit $take --tets 400000 --fast --line-search-iterations $iterations"
+    $fit --out runs/speech114_seed${seed}_ls$iterations --overwrite
+    name=$RESULTS/tracking/stretch_404k_np2_speech114_seed${seed}_ls$iterations
+    cp runs/speech114_seed${seed}_ls$iterations/timings.csv ${name}_timings.csv
+    cp runs/speech114_seed${seed}_ls$iterations/frames.csv ${name}_frames.csv
+    $PYTHON benchmarks/provenance.py record ${name}_timings.csv ${name}_frames.csv --command "$fit"
   done
 done
 
-# Where methods fail, and the model ladder (each writes its own tables and figures).
-$PYTHON benchmarks/stability.py --out runs/stability.jsonl
-$PYTHON benchmarks/stability.py --collect runs/stability.jsonl --plot docs/img/stability > runs/stability_tables.md
+# Where methods fail, one file per study (each run records itself in the manifest).
+declare -A STABILITY=([forward]=forward_5k-20k [ramp]=ramp_1k-20k [remote]=remote_5k [head]=head_5k [damage]=damage_5k)
+for study in forward ramp remote head damage; do
+  out=$RESULTS/stability/${STABILITY[$study]}.jsonl
+  $PYTHON benchmarks/provenance.py start $out
+  $PYTHON benchmarks/stability.py --studies $study --out $out
+done
+$PYTHON benchmarks/stability.py --collect $RESULTS/stability/{forward_5k-20k,ramp_1k-20k,remote_5k,head_5k,damage_5k}.jsonl \
+  --plot docs/img/stability > runs/stability_tables.md
+# The model ladder (writes its own tables and figures).
 benchmarks/run_ladder.sh

@@ -528,6 +528,8 @@ def run(args) -> None:
         head_study(model_at(args.remote_tets), write)
     if "damage" in args.studies:
         damage_study(model_at(args.damage_tets), args, write)
+    from provenance import record
+    record(out, tets=sorted(models), ranks=comm.size)
     if comm.rank == 0:
         print(f"studies {' '.join(args.studies)}: {time.perf_counter() - began:.0f} s", flush=True)
 

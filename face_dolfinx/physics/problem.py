@@ -148,7 +148,7 @@ class FaceProblem:
         costs as much as a dozen iterations, docs/performance.md).
     line_search_iterations : secant iterations of the critical-point line search per Newton step
         (PETSc ``snes_linesearch_max_it``; 1). 3 cut the slowest tracking frames at 404K tets from 94
-        to 21 s, where Newton converges only linearly (docs/performance.md, session 8).
+        to 21 s, where Newton converges only linearly (docs/performance.md).
     inversion_guard : shorten Newton steps that would flatten a cell (``solver.InversionGuard``);
         off only to measure what the guard buys (``benchmarks/stability.py``; solves without a
         ``guess``, which the guard pulls back).
