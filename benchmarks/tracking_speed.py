@@ -44,7 +44,7 @@ from mpi4py import MPI
 import numpy as np
 
 LOOSE = dict(newton_tolerance=1e-4)  # mm
-VARIANTS = {  # name: (FaceProblem keywords, FitSettings fields, QuasistaticSolver attributes)
+VARIANTS = {  # name: (FaceProblem keywords, FitSettings fields, FactorReusePolicy attributes)
     "fresh": (dict(reuse_factorization=False), {}, {}),
     "reuse": (dict(reuse_factorization=True), {}, {}),
     "reuse-1j": (dict(reuse_factorization=True), dict(max_fresh_jacobians=1), {}),
@@ -74,7 +74,7 @@ def fit_variant(name, model, sites, capture, truth, args, comm) -> dict:
     problem_options, settings, solver_attributes = VARIANTS[name]
     problem = FaceProblem(model, **problem_options)
     for attribute, value in solver_attributes.items():
-        setattr(problem.solver, attribute, value)
+        setattr(problem.solver.reuse_policy, attribute, value)
     fitter = FaceFitter(problem, MarkerSet(problem, sites),
                         FitSettings(**{**dict(mode=args.mode, max_gn_steps=args.gn_steps), **settings}))
     rows = []
