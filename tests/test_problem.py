@@ -93,8 +93,17 @@ def test_active_force_is_exact_activation_derivative(problem, muscle):
     assert f_i.norm() > 1.0
     r0.axpy(-1.0, f_i)
     assert r0.norm() <= 1e-10 * f_i.norm()
-    p.u.x.array[:] = 0.0
-    p.set_controls(Controls(np.zeros(3), AffineMap(), AffineMap()))
+    p.reset_to_rest()
+
+
+def test_reset_to_rest_is_the_rest_equilibrium_without_a_solve():
+    p = FaceProblem(slab_model())
+    p.solve(activations=[0.5, 0.2, 0.8], jaw=rigid_map(rotation([0, 1, 0], 0.3), [40, 10, 5], [0, 0, 0]))
+    factorizations = p.solver.factorizations
+    p.reset_to_rest()
+    assert p.controls.same_as(Controls.rest(3)) and not p.u.x.array.any()
+    assert p.residual_norm() < 1e-12 and p.solver.bc_error() == 0.0
+    assert p.solver.factorizations == factorizations
 
 
 def test_equilibrium_all_muscles_and_large_jaw_motion_converge():
