@@ -53,7 +53,7 @@ def run_resolution(target_tets: int, expressions: list[str], degree: int,
     row = dict(target_tets=target_tets, tets=model.mesh.topology.index_map(3).size_global,
                dofs=3 * problem.V.dofmap.index_map.size_global, ranks=comm.size, degree=degree,
                reuse_factorization=reuse_factorization, krylov=krylov, coarse_tets=coarse_tets,
-               refresh_contraction=problem.solver.refresh_contraction,
+               refresh_contraction=problem.solver.reuse_policy.refresh_contraction,
                build_s=round(t_build, 2), load_s=round(t_load, 2), setup_s=round(t_setup, 2),
                solves={})
     for name in expressions:

@@ -205,10 +205,7 @@ def load_controls(model, activations, opening: float, slide: bool):
 def to_rest(problem) -> None:
     """Put the problem back at rest, the exact equilibrium of zero controls, without a solve
     (FaceProblem.solve would walk the controls back from wherever they were)."""
-    from face_dolfinx.model.bones import AffineMap
-    from face_dolfinx.physics.problem import Controls
-    problem.u.x.array[:] = 0.0
-    problem._set_controls(Controls(np.zeros(problem.num_muscles), AffineMap(), AffineMap()))
+    problem.reset_to_rest()
 
 
 class ForwardRunner:
@@ -245,7 +242,7 @@ class ForwardRunner:
                 load_steps = 0
         else:
             # What solve(max_halvings=0) does, except that the failed iterate is kept to be measured.
-            problem._set_controls(target)
+            problem.set_controls(target)
             converged, _, reason = problem.solver.newton()
         seconds = time.perf_counter() - began
         return dict(

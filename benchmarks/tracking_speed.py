@@ -51,7 +51,7 @@ LOOSE = dict(newton_tolerance=1e-4)  # mm
 
 
 def _variants() -> dict:
-    """name: (TrackingSettings, further FaceProblem keywords, QuasistaticSolver attributes)."""
+    """name: (TrackingSettings, further FaceProblem keywords, FactorReusePolicy attributes)."""
     from face_dolfinx.tracking import PRESETS, TrackingSettings
     from face_dolfinx.fitting.fitter import FitSettings
     reuse = dict(reuse_factorization=True)
@@ -78,12 +78,12 @@ def fit_variant(name, model, capture, placement, truth, args, comm, out) -> dict
     ``run.py fit``: every frame and its checkpoint written to a fit folder)."""
     from face_dolfinx.tracking import Tracker
 
-    settings, problem_options, solver_attributes = _variants()[name]
+    settings, problem_options, policy_attributes = _variants()[name]
     settings = settings.updated(dict(mode=args.mode, gn_steps=args.gn_steps))
     tracker = Tracker(model, settings, problem_options=problem_options)
     problem = tracker.problem
-    for attribute, value in solver_attributes.items():
-        setattr(problem.solver, attribute, value)
+    for attribute, value in policy_attributes.items():
+        setattr(problem.solver.reuse_policy, attribute, value)
     rows = []
     counted = dict.fromkeys(COUNTERS, 0)
     last = [time.perf_counter()]

@@ -139,7 +139,7 @@ def test_factorisation_reuse_gives_the_same_equilibrium_with_fewer_factorisation
     # One per Newton iteration until Newton converges (CONVERGING_CORRECTION), then none ...
     assert fresh_factorizations < fresh_newton
     plain = FaceProblem(model)
-    plain.solver.converging_correction = 0.0  # ... or one per iteration throughout
+    plain.solver.reuse_policy.converging_correction = 0.0  # ... or one per iteration throughout
     report = plain.solve(activations=expression)
     assert plain.solver.factorizations == report.newton_iterations
     # Reuse across solves: fewer still, and under half of full Newton's one per iteration.

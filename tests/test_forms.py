@@ -13,6 +13,7 @@ from dolfinx import fem, mesh as dmesh
 import dolfinx.fem.petsc as fem_petsc
 
 import forms
+from face_dolfinx.physics.material import FaceMaterial, FiberSlot
 
 P1, P2 = 0.05, 6.6
 P3 = P1 * P2 * (np.exp(0.4 * P2) - 1.0)
@@ -67,32 +68,38 @@ def box():
     return domain, V
 
 
+def homogeneous(V, F0):
+    """The displacement of the homogeneous deformation F0 and its deformation gradient."""
+    u = fem.Function(V)
+    u.interpolate(lambda x: ((F0 - np.eye(3)) @ x))
+    return u, forms.deformation_gradient(u)
+
+
+def stress_from_residual(V, residual):
+    """P : G / volume for the 9 unit G, from a residual form integral P : grad v dx."""
+    r = fem_petsc.assemble_vector(fem.form(residual))
+    r.ghostUpdate(addv=2, mode=1)  # ADD, REVERSE
+    probe = fem.Function(V)
+    stress = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            G = np.zeros((3, 3))
+            G[i, j] = 1.0
+            probe.interpolate(lambda x: G @ x)
+            stress[i, j] = r.dot(probe.vector) / VOLUME
+    return stress
+
+
 def assemble_energy_and_stress(V, F0, laws):
     """Energy, P : G from differentiating the energy, and P : G from the laws' hand-written
     first_piola (for the 9 unit G), for the homogeneous deformation F0."""
-    u = fem.Function(V)
-    u.interpolate(lambda x: ((F0 - np.eye(3)) @ x))
-    F = forms.deformation_gradient(u)
+    u, F = homogeneous(V, F0)
     dx = ufl.dx(metadata={"quadrature_degree": 1})
     psi = sum(law.strain_energy(F) for law in laws)
     energy = V.mesh.comm.allreduce(fem.assemble_scalar(fem.form(psi * dx)), op=MPI.SUM)
     v = ufl.TestFunction(V)
-    residuals = [fem.form(ufl.derivative(psi * dx, u, v)),
-                 fem.form(ufl.inner(sum(law.first_piola(F) for law in laws), ufl.grad(v)) * dx)]
-    stresses = []
-    probe = fem.Function(V)
-    for residual in residuals:
-        r = fem_petsc.assemble_vector(residual)
-        r.ghostUpdate(addv=2, mode=1)  # ADD, REVERSE
-        stress = np.zeros((3, 3))
-        for i in range(3):
-            for j in range(3):
-                G = np.zeros((3, 3))
-                G[i, j] = 1.0
-                probe.interpolate(lambda x: G @ x)
-                stress[i, j] = r.dot(probe.vector) / VOLUME
-        stresses.append(stress)
-    return energy / VOLUME, stresses
+    residuals = [ufl.derivative(psi * dx, u, v), ufl.inner(sum(law.first_piola(F) for law in laws), ufl.grad(v)) * dx]
+    return energy / VOLUME, [stress_from_residual(V, residual) for residual in residuals]
 
 
 DEFORMATIONS = {
@@ -159,3 +166,28 @@ def test_active_tension_at_rest_length_is_peak_stress(box):
     expected[2, 2] = 300.0 * 0.5 * 0.8
     for stress in stresses:
         assert np.allclose(stress, expected, atol=1e-10)
+
+
+def test_face_material_is_the_flesh_plus_every_muscle_slot(box):
+    """FaceMaterial's energy and stress are the Mooney-Rivlin, volumetric and per-slot fiber
+    terms evaluated independently; its active stress along activation directions d_k is
+    sum_k d_k dP/da_k (the energy is linear in each activation)."""
+    _, V = box
+    F0 = DEFORMATIONS["stretch_shear"]
+    fibers = [np.array([1.0, 2.0, 2.0]) / 3.0, np.array([0.0, 0.6, 0.8])]
+    weights, activations, directions = [210.0, 90.0], [0.6, 0.3], [0.5, 1.0]
+    slots = [FiberSlot(ufl.as_vector(f0.tolist()), w, a) for f0, w, a in zip(fibers, weights, activations)]
+    material = FaceMaterial.from_parameters(dict(mu10=60.0, mu01=20.0, kappa=3000.0), slots)
+    parts = [mooney_rivlin_numpy(F0, 60.0, 20.0), volumetric_numpy(F0, 3000.0)] + [
+        fiber_numpy(F0, f0, w, a) for f0, w, a in zip(fibers, weights, activations)]
+    energy, stresses = assemble_energy_and_stress(V, F0, [material])
+    assert energy == pytest.approx(sum(e for e, _ in parts), rel=1e-10)
+    for stress in stresses:
+        assert np.allclose(stress, sum(p for _, p in parts), rtol=1e-10, atol=1e-8)
+    _, F = homogeneous(V, F0)
+    active = stress_from_residual(V, ufl.inner(material.active_first_piola(F, directions), ufl.grad(ufl.TestFunction(V)))
+                                  * ufl.dx(metadata={"quadrature_degree": 1}))
+    expected = sum(fiber_numpy(F0, f0, w, d)[1] - fiber_numpy(F0, f0, w, 0.0)[1]
+                   for f0, w, d in zip(fibers, weights, directions))
+    assert np.abs(expected).max() > 10.0
+    assert np.allclose(active, expected, rtol=1e-10, atol=1e-9)

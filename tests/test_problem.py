@@ -12,7 +12,7 @@ from dolfinx import fem
 import dolfinx.fem.petsc as fem_petsc
 
 from face_dolfinx.model.bones import AffineMap, rigid_map, rotation
-from face_dolfinx.physics.problem import FaceProblem
+from face_dolfinx.physics.problem import Controls, FaceProblem
 from slab import slab_model
 
 
@@ -39,7 +39,7 @@ def assemble(form):
 
 def test_residual_is_energy_derivative_and_tangent_is_residual_derivative(problem):
     p = problem
-    p._set_controls(p.controls.__class__(np.array([0.7, 0.3, 1.0]), AffineMap(), AffineMap()))
+    p.set_controls(Controls(np.array([0.7, 0.3, 1.0]), AffineMap(), AffineMap()))
     p.u.x.array[:] = random_displacement(p, 1.5, seed=1)
     direction = fem.Function(p.V)
     direction.x.array[:] = random_displacement(p, 1.0, seed=2)
@@ -78,11 +78,11 @@ def test_active_force_is_exact_activation_derivative(problem, muscle):
     p = problem
     p.u.x.array[:] = random_displacement(p, 1.0, seed=3)
     activations = np.array([0.2, 0.5, 0.1])
-    p._set_controls(p.controls.__class__(activations, AffineMap(), AffineMap()))
+    p.set_controls(Controls(activations, AffineMap(), AffineMap()))
     r0 = assemble(p.solver.residual_form)
     bumped = activations.copy()
     bumped[muscle] += 0.5
-    p._set_controls(p.controls.__class__(bumped, AffineMap(), AffineMap()))
+    p.set_controls(Controls(bumped, AffineMap(), AffineMap()))
     r1 = assemble(p.solver.residual_form)
     f_i = p.active_force(muscle)
     # Dirichlet rows are zero in f_i; compare on the free rows only.
@@ -93,8 +93,17 @@ def test_active_force_is_exact_activation_derivative(problem, muscle):
     assert f_i.norm() > 1.0
     r0.axpy(-1.0, f_i)
     assert r0.norm() <= 1e-10 * f_i.norm()
-    p.u.x.array[:] = 0.0
-    p._set_controls(p.controls.__class__(np.zeros(3), AffineMap(), AffineMap()))
+    p.reset_to_rest()
+
+
+def test_reset_to_rest_is_the_rest_equilibrium_without_a_solve():
+    p = FaceProblem(slab_model())
+    p.solve(activations=[0.5, 0.2, 0.8], jaw=rigid_map(rotation([0, 1, 0], 0.3), [40, 10, 5], [0, 0, 0]))
+    factorizations = p.solver.factorizations
+    p.reset_to_rest()
+    assert p.controls.same_as(Controls.rest(3)) and not p.u.x.array.any()
+    assert p.residual_norm() < 1e-12 and p.solver.bc_error() == 0.0
+    assert p.solver.factorizations == factorizations
 
 
 def test_equilibrium_all_muscles_and_large_jaw_motion_converge():
@@ -259,7 +268,7 @@ def test_a_failed_factorisation_is_followed_by_one_with_pivoting(reuse, caplog):
     reference.solve(activations=activations)
     problem = FaceProblem(slab_model(), reuse_factorization=reuse)
     solver = problem.solver
-    assemble, assembled = solver._assemble_tangent_matrix, []
+    assemble, assembled = solver.assemble_tangent, []
 
     def singular_first(A):
         assemble(A)
@@ -268,15 +277,15 @@ def test_a_failed_factorisation_is_followed_by_one_with_pivoting(reuse, caplog):
             A.assemble()
         assembled.append(A)
 
-    solver._assemble_tangent_matrix = singular_first
+    solver.assemble_tangent = singular_first
     assert problem.solve(activations=activations).converged
     assert len(assembled) > 1
     assert MPI.COMM_WORLD.rank != 0 or "retrying the Newton solve with pivoting" in caplog.text
     # Each problem has its own distribution under MPI: compare numbering-free quantities.
     assert problem.u.vector.norm() == pytest.approx(reference.u.vector.norm(), rel=1e-10)
     assert problem.energy() == pytest.approx(reference.energy(), rel=1e-10)
-    assert solver._pivoting
+    assert solver.pivoting
     assert problem.solve(activations=activations / 2).converged
     reference.solve(activations=activations / 2)
-    assert not solver._pivoting
+    assert not solver.pivoting
     assert problem.u.vector.norm() == pytest.approx(reference.u.vector.norm(), rel=1e-10)

@@ -18,17 +18,22 @@ Newton stops when the residual norm is below ``snes_atol`` (mN) or when its last
 no dof by more than ``step_tolerance`` (mm): a solve started at an equilibrium whose residual sits on
 its round-off floor just above ``snes_atol`` then stops after one tiny step instead of stalling.
 
-Newton refactorises at every iteration until it is converging (the last correction moved no dof
-by more than ``CONVERGING_CORRECTION`` and cut the residual 4-fold); from there the factor of its
-last tangent finishes the solve. Optionally (``reuse_factorization``) Newton keeps the last MUMPS
-factor as its matrix (modified Newton) for as long as every iteration cuts the residual norm by
-``refresh_contraction`` (default ``REFRESH_CONTRACTION``) or more, across solves too, and assembles
-and factorises the tangent only when it does not: between nearby equilibria (frames of a take) an
-iteration then costs a residual and a solve instead of an assembly and a factorisation.
+A ``FactorReusePolicy`` decides when Newton assembles and factorises the tangent and when it keeps
+the factor it has: by default a fresh factor at every iteration until Newton is converging (the
+last correction moved no dof by more than ``CONVERGING_CORRECTION`` and cut the residual 4-fold),
+after which the factor of its last tangent finishes the solve. Optionally (``across_solves``, the
+problem's ``reuse_factorization``) Newton keeps the last MUMPS factor as its matrix (modified
+Newton) for as long as every iteration cuts the residual norm by ``refresh_contraction`` (default
+``REFRESH_CONTRACTION``) or more, across solves too: between nearby equilibria (frames of a take)
+an iteration then costs a residual and a solve instead of an assembly and a factorisation.
 ``factor_distance()`` says how far the unknown has moved from the state whose tangent the factor
-holds, for callers that can use a nearby tangent (approximate Jacobians). Every option is a PETSc
-option under the solver's prefix (default ``face_``), so a user can override any of them from the
-command line.
+holds, for callers that can use a nearby tangent (approximate Jacobians).
+
+The tangent's structure is a setting (``tangent``): "spd" for the face, whose symmetric tangent
+MUMPS factorises without pivoting (with a pivoting retry after a zero pivot), "symmetric" for a
+symmetric indefinite one, "general" for a non-symmetric one (a follower load). Every option is a
+PETSc option under the solver's prefix (default ``face_``, see ``PetscOptionsPrefix``), so a user
+can override any of them from the command line.
 """
 from dataclasses import dataclass
 import logging
@@ -109,13 +114,11 @@ STALLED_GUARD_ITERATIONS = 3
 # mm: a Dirichlet gap this small is closed by moving the bone nodes, not by more lifting.
 SNAP_DISTANCE = 1e-3
 
-# Form compiler flags: -O2 keeps JIT time short for these long nonlinear kernels.
+# C compiler flags of the generated kernels (compiled once per form, then taken from the cache).
 JIT_OPTIONS = {"cffi_extra_compile_args": ["-O3", "-march=native"], "cache_dir": None}
 
-
-# Option names (by prefix) that QuasistaticSolver itself put in the PETSc options database, as
-# opposed to options the user gave on the command line.
-_OPTIONS_SET_BY_SOLVERS: dict[str, set[str]] = {}
+# How the tangent is flagged for the factorisation (see QuasistaticSolver, ``tangent``).
+TANGENT_STRUCTURES = ("spd", "symmetric", "general")
 
 
 class EquilibriumError(RuntimeError):
@@ -230,35 +233,163 @@ class PackedCoefficients:
         return self._packed
 
 
+class FactorReusePolicy:
+    """Decides, before each Newton iteration's tangent, whether the iteration keeps the factor it
+    has (a modified Newton iteration: a residual and a solve) or assembles and factorises the
+    tangent at its iterate.
+
+    ``across_solves`` False: a fresh factor at every iteration until Newton is converging (its last
+    correction moved no dof by more than ``converging_correction`` mm and cut the residual by
+    ``refresh_contraction``); from there this solve's last factor finishes the job for as long as
+    two iterations together contract as fast. ``across_solves`` True (``reuse_factorization``):
+    the last factor, from whichever solve, is kept for as long as every iteration cuts the residual
+    by ``refresh_contraction`` or more, or, with Krylov on the old factor, a linear solve takes no
+    more than ``krylov_refresh_iterations``. Either way a step that the inversion guard had to cut
+    refreshes the factor (it says the factor is stale, not that Newton stalls).
+
+    The solver reports each residual norm (``record_residual``), each Newton correction
+    (``record_correction``) and each factorisation (``factorised``), and asks ``keep_factor``.
+    """
+
+    def __init__(self, across_solves: bool = False, refresh_contraction: float = REFRESH_CONTRACTION,
+                 converging_correction: float = CONVERGING_CORRECTION,
+                 krylov_refresh_iterations: int = KRYLOV_REFRESH_ITERATIONS):
+        self.across_solves = across_solves
+        self.refresh_contraction = refresh_contraction
+        self.converging_correction = converging_correction  # 0: a fresh factor every iteration
+        self.krylov_refresh_iterations = krylov_refresh_iterations
+        self.has_factor = False          # some tangent has been factorised (and not forgotten)
+        self.refreshed_in_solve = False  # ... by the Newton solve under way
+        self.fresh_factor = True         # the current iteration's correction comes from its own tangent
+        self.step_was_cut = False        # the inversion guard shortened the last correction
+        self.correction_size = math.inf  # mm, largest dof change of the last correction
+        self.contraction = 0.0           # residual norm ratio of the last iteration
+        self.two_step_contraction = math.inf  # geometric mean of the last two ratios
+        self._last_norm = math.inf
+
+    def start_solve(self) -> None:
+        self.refreshed_in_solve = False
+
+    def record_residual(self, iteration: int, norm: float) -> None:
+        """The residual norm at the start of Newton iteration ``iteration`` (0: a new solve)."""
+        if iteration == 0:
+            self.step_was_cut = False
+            self.correction_size, self.contraction = math.inf, 0.0
+            self.two_step_contraction = math.inf
+        else:
+            self.two_step_contraction = math.sqrt(self.contraction * norm / max(self._last_norm, 1e-300))
+            self.contraction = norm / max(self._last_norm, 1e-300)
+        self._last_norm = norm
+
+    def record_correction(self, size: float, cut: bool = False) -> None:
+        """The last Newton correction moved a dof by at most ``size``; ``cut``: the inversion
+        guard shortened it."""
+        self.correction_size, self.step_was_cut = size, cut
+
+    def keep_factor(self, iteration: int, linear_iterations: int | None = None) -> bool:
+        """Whether iteration ``iteration`` keeps the factor. ``linear_iterations``: the Krylov
+        iterations of the last linear solve when corrections are solved by Krylov preconditioned
+        by the factor (None: by the factor alone)."""
+        if linear_iterations is not None:
+            contracting = iteration > 0 and linear_iterations <= self.krylov_refresh_iterations
+        else:
+            contracting = iteration > 0 and self.contraction <= self.refresh_contraction
+        if self.across_solves:
+            keep = iteration == 0 or contracting
+        else:
+            # Modified-Newton residuals alternate between fast and slow cuts (0.017, 0.26, ... on
+            # the 404K pucker), so once the factor is kept it is judged over two iterations: one
+            # slow cut alone refactorised at a 1e-6 mm correction, 7 s of a 61 s solve.
+            if not self.fresh_factor:
+                contracting = iteration > 0 and self.two_step_contraction <= self.refresh_contraction
+            keep = contracting and self.correction_size < self.converging_correction
+        keep = keep and self.has_factor and not self.step_was_cut
+        self.fresh_factor = not keep
+        return keep
+
+    def factorised(self, in_newton: bool) -> None:
+        """A tangent was factorised, by Newton (``in_newton``) or for other solves."""
+        self.has_factor = True
+        self.refreshed_in_solve = self.refreshed_in_solve or in_newton
+
+    def forget_factor(self) -> None:
+        """The factor must not be kept (a failed or reset factorisation): the next tangent is fresh."""
+        self.has_factor = False
+
+    @property
+    def converging_phase(self) -> bool:
+        """The current correction comes from an older factor of this solve (``across_solves``
+        False): it contracts the residual only linearly."""
+        return not (self.across_solves or self.fresh_factor)
+
+    @property
+    def used_only_an_old_factor(self) -> bool:
+        """The solve under way has not factorised: every correction came from an older solve's
+        factor (``across_solves``)."""
+        return self.across_solves and not self.refreshed_in_solve
+
+
+class PetscOptionsPrefix:
+    """A solver's entries under ``prefix`` in PETSc's options database, which is global to the
+    process.
+
+    ``replace(options)`` writes each option unless the user gave it (command line, PETSC_OPTIONS,
+    ``PETSc.Options()`` between solvers: a value other than the one a solver wrote): the user's
+    value wins. It removes what an earlier solver with the same prefix wrote and this one does not
+    want, so that every solver gets its own options.
+    """
+
+    # By prefix: each option a solver wrote, with its value as the database holds it.
+    _written: dict[str, dict[str, str]] = {}
+
+    def __init__(self, prefix: str):
+        self.prefix = prefix
+
+    def replace(self, options: dict) -> None:
+        database = PETSc.Options()
+        wanted = {self.prefix + key: value for key, value in options.items()}
+        written = self._written.setdefault(self.prefix, {})
+        for name in written.keys() - wanted.keys():
+            if database.getString(name, None) == written.pop(name):
+                database.delValue(name)
+        for name, value in wanted.items():
+            ours = name in written and database.getString(name, None) == written[name]
+            if ours or not database.hasName(name):
+                database[name] = value
+                written[name] = database.getString(name)
+            else:
+                written.pop(name, None)  # the user's option
+
+
 class QuasistaticSolver:
     """Newton (SNES) for R(u) = 0 with Dirichlet conditions ``bcs`` whose values the owner sets.
 
-    ``energy`` (optional) is the total potential, for reports and checks. The line search does not
+    ``tangent`` says how the tangent is factorised: "spd" (symmetric, MUMPS without numerical
+    pivoting; a zero pivot makes that Newton solve start over with pivoting), "symmetric"
+    (symmetric indefinite, with pivoting) or "general" (no symmetry, for LU). ``energy``
+    (optional) is the total potential, for reports and checks. The line search does not
     backtrack on it: near equilibrium its changes drown in round-off and stall the search.
+    ``reuse_policy`` decides when Newton refactorises (default: ``FactorReusePolicy()``).
     """
 
-    def __init__(self, residual: ufl.Form, unknown: fem.Function, bcs: list, *,
+    def __init__(self, residual: ufl.Form, unknown: fem.Function, bcs: list, *, tangent: str,
                  jacobian: ufl.Form | None = None, energy: ufl.Form | None = None,
                  petsc_options: dict | None = None, options_prefix: str = "face_",
                  inversion_guard: InversionGuard | None = None,
-                 reuse_factorization: bool = False, krylov_on_old_factor: bool = False,
+                 reuse_policy: FactorReusePolicy | None = None, krylov_on_old_factor: bool = False,
                  step_tolerance: float = 1e-8, keep_packed_coefficients: bool = False):
+        if tangent not in TANGENT_STRUCTURES:
+            raise ValueError(f"tangent = {tangent!r}: give one of {', '.join(TANGENT_STRUCTURES)}")
         self.unknown = unknown
         self.inversion_guard = inversion_guard
-        self.reuse_factorization = reuse_factorization
+        self.reuse_policy = reuse_policy if reuse_policy is not None else FactorReusePolicy()
         # mm: Newton has converged once a correction moves no dof further than this. 1e-8 mm lies
         # far below anything measurable and above the round-off of the corrections.
         self.step_tolerance = step_tolerance
-        self.converging_correction = CONVERGING_CORRECTION  # 0: a fresh factor every iteration
-        self.refresh_contraction = REFRESH_CONTRACTION
         self.factorizations = 0     # numerical factorisations so far (a cost counter)
         self.residual_evaluations = 0  # residual assemblies so far (matrix-free products included)
         self.linear_iterations = 0     # Krylov iterations (each one solve with the factor) so far
-        self._has_factor = False         # some tangent has been factorised (reuse mode keeps it)
-        self._factor_controls_current = False  # ... for the controls (bone values, constants) now set
-        self._refreshed_in_solve = False
-        self._fresh_factor_in_iteration = True
-        self._step_was_cut = False
+        self._factor_controls_current = False  # the factor holds a tangent of the controls now set
         self.bcs = bcs
         self.comm = unknown.function_space.mesh.comm
         self.residual_form = compile_form(residual)
@@ -272,14 +403,16 @@ class QuasistaticSolver:
 
         self._residual_vector = fem_petsc.create_vector(self.residual_form)
         self._residual_work = self._residual_vector.duplicate()
+        self.tangent_structure = tangent
         self.tangent = fem_petsc.create_matrix(self.jacobian_form)
-        self.tangent.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-        # Makes MUMPS factorise without numerical pivoting (SYM = 1): 4.4-5.0 s instead of 5.5 s at
-        # 404K tets, same solve residual (1e-12). Off equilibrium the tangent may have a few
-        # negative pivots (2 of 237K seen mid-Newton on the pucker), which this LDL^T factorises
-        # as well. A zero pivot fails the factorisation (seen in jaw openings from rest at
-        # 404K): newton() then drops the flag for that solve (_factorise_with_pivoting).
-        self.tangent.setOption(PETSc.Mat.Option.SPD, True)
+        if tangent != "general":
+            self.tangent.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        # "spd" makes MUMPS factorise without numerical pivoting (SYM = 1): 4.4-5.0 s instead of
+        # 5.5 s at 404K tets, same solve residual (1e-12). Off equilibrium the face's tangent may
+        # have a few negative pivots (2 of 237K seen mid-Newton on the pucker), which this LDL^T
+        # factorises as well. A zero pivot fails the factorisation (seen in jaw openings from rest
+        # at 404K): newton() then drops the flag for that solve (_factorise_with_pivoting).
+        self.tangent.setOption(PETSc.Mat.Option.SPD, tangent == "spd")
         self._pivoting = False
         self._solution = unknown.vector.duplicate()
         self._start = unknown.vector.duplicate()  # where the current Newton solve began
@@ -289,28 +422,15 @@ class QuasistaticSolver:
 
         self.snes = PETSc.SNES().create(self.comm)
         self.snes.setOptionsPrefix(options_prefix)
-        opts = PETSc.Options()
-        defaults = dict(DEFAULT_PETSC_OPTIONS)
+        options = dict(DEFAULT_PETSC_OPTIONS)
         if krylov_on_old_factor:
-            if not reuse_factorization:
+            if not self.reuse_policy.across_solves:
                 raise ValueError("krylov_on_old_factor needs reuse_factorization: without it every "
                                  "Newton iteration has a fresh factor and nothing to precondition")
-            defaults.update(KRYLOV_OPTIONS)
+            options.update(KRYLOV_OPTIONS)
         if inversion_guard is not None:
-            defaults["snes_linesearch_maxstep"] = GUARDED_MAX_LAMBDA
-        wanted = {options_prefix + key: value
-                  for key, value in {**defaults, **(petsc_options or {})}.items()}
-        # The options database is global to the process: drop what an earlier solver with this
-        # prefix put there and this one does not want, and overwrite the rest, so that each
-        # solver gets its own petsc_options. A user's command-line PETSc option still wins.
-        ours = _OPTIONS_SET_BY_SOLVERS.setdefault(options_prefix, set())
-        for name in ours - wanted.keys():
-            opts.delValue(name)
-            ours.discard(name)
-        for name, value in wanted.items():
-            if name in ours or not opts.hasName(name):
-                opts[name] = value
-                ours.add(name)
+            options["snes_linesearch_maxstep"] = GUARDED_MAX_LAMBDA
+        PetscOptionsPrefix(options_prefix).replace({**options, **(petsc_options or {})})
         self.snes.setFunction(self._assemble_residual, self._residual_vector)
         self.snes.setJacobian(self._assemble_tangent, self.tangent)
         self.snes.setConvergenceTest(self._converged)
@@ -354,9 +474,10 @@ class QuasistaticSolver:
         inversion is cut again and again: after STALLED_GUARD_ITERATIONS such cuts in a row,
         Newton gives up (the continuation fallback takes over) instead of crawling to the
         iteration limit."""
-        self._correction_size = step.norm(PETSc.NormType.NORM_INFINITY)
+        correction_size = step.norm(PETSc.NormType.NORM_INFINITY)
         snapped = self._snap_dirichlet_values(x, step)
         if self.inversion_guard is None:
+            self.reuse_policy.record_correction(correction_size)
             return snapped
         for source, work in ((x, self._guard_x), (step, self._guard_step)):
             source.copy(work)
@@ -366,8 +487,8 @@ class QuasistaticSolver:
                 x_local.array_r, step_local.array_r, GUARDED_MAX_LAMBDA) / GUARDED_MAX_LAMBDA
         # A step from an old factor that had to be cut says the factor is stale, not that Newton
         # stalls: the next iteration refactorises instead.
-        self._step_was_cut = fraction < 1.0
-        if self._fresh_factor_in_iteration:
+        self.reuse_policy.record_correction(correction_size, cut=fraction < 1.0)
+        if self.reuse_policy.fresh_factor:
             self._guard_cuts = self._guard_cuts + 1 if fraction < STALLED_GUARD_FRACTION else 0
         if fraction < 1.0:
             step.scale(fraction)
@@ -389,18 +510,14 @@ class QuasistaticSolver:
 
     def _converged(self, snes, iteration, norms):
         """PETSc's default test (atol, rtol, stol, max_it, NaN), the step tolerance and the
-        guard's stall test. Also records how much the last iteration cut the residual."""
+        guard's stall test. Also gives the residual norm to the reuse policy."""
         xnorm, step_norm, fnorm = norms
         rtol, atol, stol, max_it = snes.getTolerances()
         reasons = PETSc.SNES.ConvergedReason
+        policy = self.reuse_policy
+        policy.record_residual(iteration, fnorm)
         if iteration == 0:
-            self._guard_cuts, self._initial_fnorm, self._step_was_cut = 0, fnorm, False
-            self._correction_size, self._contraction = math.inf, 0.0
-            self._two_step_contraction = math.inf
-        else:
-            self._two_step_contraction = math.sqrt(self._contraction * fnorm / max(self._last_fnorm, 1e-300))
-            self._contraction = fnorm / max(self._last_fnorm, 1e-300)
-        self._last_fnorm = fnorm
+            self._guard_cuts, self._initial_fnorm = 0, fnorm
         if not np.isfinite(fnorm):
             return reasons.DIVERGED_FNORM_NAN
         if fnorm < atol:
@@ -410,11 +527,11 @@ class QuasistaticSolver:
         # stop them early (the widest jaw opening at 5K tets: 8e-5 mN instead of below 1e-9);
         # they stop on their size, with a hundredfold margin for their slower contraction (one
         # more cheap iteration).
-        fresh_step = self.reuse_factorization or self._fresh_factor_in_iteration
-        if iteration > 0 and fresh_step and fnorm < rtol * self._initial_fnorm:
+        converging_phase = policy.converging_phase
+        if iteration > 0 and not converging_phase and fnorm < rtol * self._initial_fnorm:
             return reasons.CONVERGED_FNORM_RELATIVE
-        step_tolerance = self.step_tolerance if fresh_step else 0.01 * self.step_tolerance
-        if iteration > 0 and (step_norm < stol * xnorm or self._correction_size < step_tolerance):
+        step_tolerance = 0.01 * self.step_tolerance if converging_phase else self.step_tolerance
+        if iteration > 0 and (step_norm < stol * xnorm or policy.correction_size < step_tolerance):
             return reasons.CONVERGED_SNORM_RELATIVE
         if iteration >= max_it:
             return reasons.DIVERGED_MAX_IT
@@ -422,37 +539,26 @@ class QuasistaticSolver:
             return reasons.DIVERGED_LINE_SEARCH
         return reasons.CONVERGED_ITERATING
 
-    def _assemble_tangent_matrix(self, A: PETSc.Mat) -> None:
+    def assemble_tangent(self, A: PETSc.Mat) -> None:
+        """Assemble the tangent at the unknown into ``A`` (Dirichlet rows and columns identity)."""
         A.zeroEntries()
         fem_petsc.assemble_matrix(A, self.jacobian_form, bcs=self.bcs, coeffs=self._coefficients(1))
         A.assemble()
 
     def _assemble_tangent(self, snes, x, A, P):
-        iteration = snes.getIterationNumber()
+        linear_iterations = None
         if A.handle != P.handle:
             # -snes_mf_operator: Krylov on the exact tangent (J v by differencing the residual at
             # x), preconditioned by the factor of P; the factor is refreshed when Krylov slows.
             A.assemble()
-            contracting = iteration > 0 and snes.getKSP().getIterationNumber() <= KRYLOV_REFRESH_ITERATIONS
-        else:
-            contracting = iteration > 0 and self._contraction <= self.refresh_contraction
-        if self.reuse_factorization:
-            keep = iteration == 0 or contracting
-        else:  # this solve's own factor, once Newton has converged to within CONVERGING_CORRECTION
-            # Modified-Newton residuals alternate between fast and slow cuts (0.017, 0.26, ... on
-            # the 404K pucker), so once the factor is kept it is judged over two iterations: one
-            # slow cut alone refactorised at a 1e-6 mm correction, 7 s of a 61 s solve.
-            if not self._fresh_factor_in_iteration:
-                contracting = iteration > 0 and self._two_step_contraction <= self.refresh_contraction
-            keep = contracting and self._correction_size < self.converging_correction
-        keep = keep and self._has_factor and not self._step_was_cut
-        self._fresh_factor_in_iteration = not keep
-        if keep:
-            return  # A is untouched, so the PC keeps its factor: a modified Newton iteration
-        self._assemble_tangent_matrix(P)
+            linear_iterations = snes.getKSP().getIterationNumber()
+        if self.reuse_policy.keep_factor(snes.getIterationNumber(), linear_iterations):
+            return  # P is untouched, so the PC keeps its factor: a modified Newton iteration
+        self.assemble_tangent(P)
         # The PC sees a changed matrix and factorises it when the KSP is set up.
         self.factorizations += 1
-        self._has_factor = self._refreshed_in_solve = self._factor_controls_current = True
+        self.reuse_policy.factorised(in_newton=True)
+        self._factor_controls_current = True
         x.copy(self._factor_state)
 
     def _factor(self, A: PETSc.Mat) -> None:
@@ -461,7 +567,8 @@ class QuasistaticSolver:
         ksp.setUp()
         ksp.getPC().setUp()
         self.factorizations += 1
-        self._has_factor = self._factor_controls_current = True
+        self.reuse_policy.factorised(in_newton=False)
+        self._factor_controls_current = True
 
     def _coefficients(self, form: int) -> dict | None:
         """Packed coefficients of the residual (0) or tangent (1) form; None: DOLFINx packs them."""
@@ -479,7 +586,7 @@ class QuasistaticSolver:
         """Largest distance of a dof of the unknown from the state whose tangent the factor
         holds (0 right after ``factorize``), over all ranks; inf if no factor holds a tangent of
         the controls now set. Collective."""
-        if not (self._has_factor and self._factor_controls_current):
+        if not (self.reuse_policy.has_factor and self._factor_controls_current):
             return math.inf
         self.unknown.vector.copy(self._distance_work)
         self._distance_work.axpy(-1.0, self._factor_state)
@@ -488,7 +595,7 @@ class QuasistaticSolver:
     def factorize(self) -> None:
         """Assemble and factorise the tangent at the unknown (for sensitivities; in reuse mode
         the factor then also serves the next Newton solves)."""
-        self._assemble_tangent_matrix(self.tangent)
+        self.assemble_tangent(self.tangent)
         self._factor(self.tangent)
         self.unknown.vector.copy(self._factor_state)
 
@@ -512,18 +619,18 @@ class QuasistaticSolver:
 
     def newton(self) -> tuple[bool, int, str]:
         """One SNES solve from the current unknown; Dirichlet values are reached by the Newton steps."""
-        self._refreshed_in_solve = False
+        self.reuse_policy.start_solve()
         if self._pivoting:
             self._set_pivoting(False)
         began, factorizations, residuals = time.perf_counter(), self.factorizations, self.residual_evaluations
         self.unknown.vector.copy(self._start)
         reason = self._solve_from_start()
-        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE:
+        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE and self.tangent_structure == "spd":
             self._factorise_with_pivoting()
             reason = self._solve_from_start()
-        elif reason < 0 and self.reuse_factorization and not self._refreshed_in_solve:
+        elif reason < 0 and self.reuse_policy.used_only_an_old_factor:
             # Only the old factor was used and Newton failed: retry once with fresh tangents.
-            self._has_factor = False
+            self.reuse_policy.forget_factor()
             reason = self._solve_from_start()
         self._set_unknown(self._solution)
         if self.comm.rank == 0:
@@ -556,7 +663,13 @@ class QuasistaticSolver:
         self._pivoting = pivoting
         self.tangent.setOption(PETSc.Mat.Option.SPD, not pivoting)
         self.snes.getKSP().getPC().reset()
-        self._has_factor = False
+        self.reuse_policy.forget_factor()
+
+    @property
+    def pivoting(self) -> bool:
+        """An "spd" tangent is factorised with pivoting, for the rest of the Newton solve after a
+        failed factorisation."""
+        return self._pivoting
 
     def bc_error(self, x: PETSc.Vec | None = None) -> float:
         """Largest distance of a Dirichlet dof of ``x`` (default: the unknown) from its

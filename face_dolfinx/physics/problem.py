@@ -1,6 +1,7 @@
 """The quasistatic face: spaces, forms, boundary conditions and the equilibrium solver.
 
-``FaceProblem`` alone owns the function spaces, the compiled forms and the SNES solver. Controls
+``FaceProblem`` alone owns the function spaces, the compiled forms and the SNES solver; the
+constitutive model is ``face_dolfinx.physics.material.FaceMaterial``. Controls
 (muscle activations, cranium frame, mandible frame relative to the cranium) live in DG0 functions
 and in the Dirichlet values, so changing them never recompiles a form.
 
@@ -24,7 +25,9 @@ import dolfinx.fem.petsc as fem_petsc
 
 import forms
 from face_dolfinx.model.bones import AffineMap
-from face_dolfinx.equilibrium.solver import REFRESH_CONTRACTION, InversionGuard, QuasistaticSolver, SolveReport, compile_form
+from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
+                                             QuasistaticSolver, SolveReport, compile_form)
+from face_dolfinx.physics.material import FaceMaterial, FiberSlot
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +43,11 @@ class Controls:
     def interpolate(self, other: "Controls", t: float) -> "Controls":
         return Controls((1 - t) * self.activations + t * other.activations,
                         self.cranium.interpolate(other.cranium, t), self.jaw.interpolate(other.jaw, t))
+
+    @classmethod
+    def rest(cls, num_muscles: int) -> "Controls":
+        """No activation, bones in their rest frames."""
+        return cls(np.zeros(num_muscles), AffineMap(), AffineMap())
 
     def copy(self) -> "Controls":
         return Controls(self.activations.copy(), self.cranium, self.jaw)
@@ -171,21 +179,17 @@ class FaceProblem:
         dx = ufl.dx(domain=mesh, metadata={"quadrature_degree": q})
         self.slots = build_muscle_slots(model, mesh)
 
-        material = model.material
+        self.material = FaceMaterial.from_parameters(model.material, [
+            FiberSlot(f0, w, a) for w, f0, a in zip(self.slots.weight, self.slots.fiber, self.slots.activation)])
         F = forms.deformation_gradient(self.u)
-        laws = [forms.MooneyRivlin(material["mu10"], material["mu01"]),
-                forms.LogVolumetric(material["kappa"])]
-        for w, f0, a in zip(self.slots.weight, self.slots.fiber, self.slots.activation):
-            laws += [forms.PassiveFiber(f0, w), forms.ActiveFiber(f0, w, a)]
-        energy = sum(law.strain_energy(F) for law in laws) * dx
+        energy = self.material.strain_energy(F) * dx
         v = ufl.TestFunction(self.V)
-        residual = ufl.inner(sum(law.first_piola(F) for law in laws), ufl.grad(v)) * dx
-        # df/da_i: the active law with a direction in place of a, integrated over muscle i's cells
-        # only (one compiled kernel, one form object per muscle's cells): 32 assemblies over the
-        # whole mesh per Jacobian cost more than the factorisation at 50K tets.
-        active_along_direction = ufl.inner(sum(
-            forms.ActiveFiber(f0, w, d).first_piola(F)
-            for w, f0, d in zip(self.slots.weight, self.slots.fiber, self.slots.direction)), ufl.grad(v))
+        # The residual from the laws' stresses: the tangent is then one automatic derivative.
+        residual = ufl.inner(self.material.first_piola(F), ufl.grad(v)) * dx
+        # df/da_i: the active stress with a direction in place of a, integrated over muscle i's
+        # cells only (one compiled kernel, one form object per muscle's cells): 32 assemblies over
+        # the whole mesh per Jacobian cost more than the factorisation at 50K tets.
+        active_along_direction = ufl.inner(self.material.active_first_piola(F, self.slots.direction), ufl.grad(v))
         self._active_residuals = [
             compile_form(active_along_direction * ufl.dx(
                 domain=mesh, subdomain_data=_cell_tags(mesh, muscle.cells), subdomain_id=1,
@@ -197,16 +201,18 @@ class FaceProblem:
         self.bone_displacement = fem.Function(self.V, name="bone_displacement")
         self.bone_blocks = np.concatenate([self.cranium_blocks, self.mandible_blocks])
         self.bcs = [fem.dirichletbc(self.bone_displacement, self.bone_blocks)]
-        self.solver = QuasistaticSolver(residual, self.u, self.bcs, energy=energy,
+        # The tangent is the Hessian of the energy: symmetric, and positive definite near
+        # equilibrium.
+        self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent="spd", energy=energy,
                                         petsc_options={"snes_linesearch_max_it": line_search_iterations,
                                                        **(petsc_options or {})},
                                         inversion_guard=InversionGuard(self.V) if inversion_guard else None,
-                                        reuse_factorization=reuse_factorization,
+                                        reuse_policy=FactorReusePolicy(across_solves=reuse_factorization,
+                                                                       refresh_contraction=refresh_contraction),
                                         krylov_on_old_factor=krylov_on_old_factor,
                                         step_tolerance=newton_tolerance, keep_packed_coefficients=True)
-        self.solver.refresh_contraction = refresh_contraction
-        self.controls = Controls(np.zeros(self.num_muscles), AffineMap(), AffineMap())
-        self._set_controls(self.controls)
+        self.controls = Controls.rest(self.num_muscles)
+        self.set_controls(self.controls)
 
     # -- set-up ------------------------------------------------------------------------------
     def _bone_dof_blocks(self):
@@ -260,9 +266,16 @@ class FaceProblem:
         or a checkpoint. Re-solving it would change it at round-off level, at the price of a
         factorisation."""
         self.u.x.array[:] = displacement
-        self._set_controls(controls.copy())
+        self.set_controls(controls.copy())
 
-    def _set_controls(self, controls: Controls) -> None:
+    def reset_to_rest(self) -> None:
+        """Zero controls and zero displacement, their exact equilibrium, without a solve
+        (``solve`` would walk the controls back from wherever they are)."""
+        self.adopt(Controls.rest(self.num_muscles), np.zeros_like(self.u.x.array))
+
+    def set_controls(self, controls: Controls) -> None:
+        """Put ``controls`` into the forms (activations) and the Dirichlet values (bone frames)
+        without solving: the displacement stays as it is, no longer an equilibrium in general."""
         if not controls.same_as(self.controls):
             self.solver.controls_changed()
         self._scatter(controls.activations, self.slots.activation)
@@ -305,17 +318,17 @@ class FaceProblem:
             # A long linear prediction can invert elements: pull it back towards the equilibrium.
             fraction = self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - guess)
             self.u.x.array[:] = equilibrium + fraction * (guess - equilibrium)
-            self._set_controls(target)
+            self.set_controls(target)
             ok, iterations, why = self.solver.newton()
             if ok:
                 return SolveReport(True, iterations, 1, why, time.perf_counter() - began)
             log.info("Newton from the predicted shape failed (%s); continuing from the last "
                      "equilibrium", why)
             self.u.x.array[:] = equilibrium
-            self._set_controls(start)
+            self.set_controls(start)
 
-        def set_controls(t):
-            self._set_controls(start.interpolate(target, t))
+        def controls_at(t):
+            self.set_controls(start.interpolate(target, t))
 
         def predictor(t0, t1):
             old = start.cranium.interpolate(target.cranium, t0)
@@ -323,9 +336,9 @@ class FaceProblem:
             if not old.same_as(new):
                 self._move_rigidly(old, new)
 
-        report = self.solver.solve_continuation(set_controls, predictor=predictor,
+        report = self.solver.solve_continuation(controls_at, predictor=predictor,
                                                 max_halvings=max_halvings)
-        self._set_controls(target)
+        self.set_controls(target)
         return report
 
     def active_force(self, muscle: int, out: PETSc.Vec | None = None) -> PETSc.Vec:

@@ -20,7 +20,6 @@ import numpy as np
 from face_dolfinx.capture import Capture, chunk_ranges
 from face_dolfinx.capture.synthetic import load_truth
 from face_dolfinx.fitting.fitter import FaceFitter, FrameResult, MarkerSet
-from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.parallel import root_first
 from face_dolfinx.physics.problem import FaceProblem
@@ -166,8 +165,7 @@ class Tracker:
                 if start is None or len(results) == todo:
                     continue
                 fitter = FaceFitter(problem, markers, self.settings.fit)
-                problem.u.x.array[:] = 0.0
-                problem.solve(activations=np.zeros(problem.num_muscles), cranium=AffineMap(), jaw=AffineMap())
+                problem.reset_to_rest()
                 if start > frames.start:
                     checkpoint = folder.load_checkpoint(start - 1, node_order)
                     if checkpoint is None:

@@ -400,7 +400,7 @@ def run(problem_number: int, refine: int = 1, formulation: str = "mixed", degree
         bulk_modulus=1000.0 * problem.C if bulk_modulus is None else bulk_modulus,
         quadrature_degree=quadrature_degree or default_quadrature_degree(degree, domain))
     petsc_options = {**PETSC_OPTIONS, "snes_atol": problem.residual_tolerance}
-    solver = QuasistaticSolver(model.residual, model.state, model.bcs,
+    solver = QuasistaticSolver(model.residual, model.state, model.bcs, tangent="general",
                                petsc_options=petsc_options, options_prefix="land2015_")
 
     quantities = {}

@@ -1,0 +1,124 @@
+"""The solver's parts that can be tested alone: the factorisation-reuse policy on scripted Newton
+iterations, and the PETSc options a solver writes under its prefix."""
+from petsc4py import PETSc
+import pytest
+
+from face_dolfinx.equilibrium.solver import FactorReusePolicy, PetscOptionsPrefix, QuasistaticSolver
+from face_dolfinx.physics.problem import FaceProblem
+from slab import slab_model
+
+
+def newton(policy, iterations, linear_iterations=None):
+    """Drive ``policy`` as QuasistaticSolver does through Newton iterations given as (residual
+    norm, correction size, step cut by the guard); returns, per iteration, whether it kept the
+    factor."""
+    kept = []
+    policy.start_solve()
+    for k, (norm, correction, cut) in enumerate(iterations):
+        policy.record_residual(k, norm)
+        keep = policy.keep_factor(k, None if linear_iterations is None else linear_iterations[k])
+        if not keep:
+            policy.factorised(in_newton=True)
+        kept.append(keep)
+        policy.record_correction(correction, cut)
+    return kept
+
+
+def test_a_solve_refactorises_until_it_converges_then_finishes_with_its_last_factor():
+    policy = FactorReusePolicy()  # refresh_contraction 0.25, converging_correction 0.1 mm
+    kept = newton(policy, [
+        (1e4, 5.0, False),    # iteration 0: no factor yet
+        (1e3, 0.05, False),   # cut 10x, but the correction that led here was 5 mm: refresh
+        (1e2, 0.01, False),   # cut 10x after a 0.05 mm correction: keep
+        (5e1, 1e-3, False),   # one slow cut (0.5), fast over two (sqrt(0.1 * 0.5) = 0.22): keep
+        (2.5e1, 1e-4, False),  # two slow cuts (0.5, 0.5): refresh
+    ])
+    assert kept == [False, False, True, True, False]
+    assert not policy.converging_phase  # the last correction came from a fresh factor
+    # A new solve starts with a fresh factor whatever the last one held, ...
+    assert newton(policy, [(1e3, 0.01, False)]) == [False]
+    # ... and a step the guard had to cut refreshes the factor even when Newton contracts.
+    assert newton(policy, [(1e3, 0.01, False), (1e2, 0.01, True), (1e1, 0.01, False)]) == [False, True, False]
+
+
+def test_converging_phase_is_judged_on_the_step_size():
+    policy = FactorReusePolicy()
+    newton(policy, [(1e4, 0.05, False), (1e2, 0.01, False)])
+    assert policy.converging_phase and policy.correction_size == 0.01
+
+
+def test_no_converging_correction_means_a_fresh_factor_every_iteration():
+    policy = FactorReusePolicy(converging_correction=0.0)
+    assert newton(policy, [(1e4, 1e-3, False), (1e2, 1e-5, False), (1.0, 1e-7, False)]) == [False] * 3
+
+
+def test_reuse_across_solves_keeps_the_factor_while_every_iteration_contracts_enough():
+    policy = FactorReusePolicy(across_solves=True, refresh_contraction=0.25)
+    # No factor yet: the first iteration assembles one.
+    assert newton(policy, [(1e4, 5.0, False), (1e3, 0.5, False), (2e2, 0.1, False), (1e2, 0.01, False)]) \
+        == [False, True, True, False]  # cuts 0.1 and 0.2 keep it, 0.5 does not
+    assert not policy.used_only_an_old_factor
+    # The next solve starts from that factor; one that never refactorises says so.
+    assert newton(policy, [(1e2, 0.01, False), (1e1, 1e-3, False)]) == [True, True]
+    assert policy.used_only_an_old_factor and not policy.converging_phase
+    policy.forget_factor()
+    assert newton(policy, [(1e2, 0.01, False)]) == [False]
+    # A cut step refreshes here too.
+    assert newton(policy, [(1e2, 0.01, True), (1e1, 0.01, False)]) == [True, False]
+
+
+def test_krylov_on_the_old_factor_refreshes_when_a_linear_solve_slows():
+    policy = FactorReusePolicy(across_solves=True, krylov_refresh_iterations=8)
+    steps = [(1e4, 1.0, False), (9e3, 1.0, False), (8e3, 1.0, False), (7e3, 1.0, False)]
+    # Residual contractions of 0.9 do not matter here, only the linear iterations.
+    assert newton(policy, steps, linear_iterations=[0, 8, 9, 3]) == [False, True, False, True]
+
+
+def test_a_solver_writes_its_options_under_its_prefix_and_the_user_wins():
+    database, prefix = PETSc.Options(), "unit_options_"
+    database[prefix + "snes_max_it"] = 3  # the user's, as from the command line
+    try:
+        first = PetscOptionsPrefix(prefix)
+        first.replace({"snes_max_it": 25, "snes_rtol": 1e-6, "snes_linesearch_type": "cp"})
+        assert database.getInt(prefix + "snes_max_it") == 3
+        assert database.getReal(prefix + "snes_rtol") == 1e-6
+        # The next solver under this prefix: what the first wrote and it does not want is gone,
+        # its own values replace the first's, and the user's option stays.
+        PetscOptionsPrefix(prefix).replace({"snes_max_it": 10, "snes_linesearch_type": "bt"})
+        assert not database.hasName(prefix + "snes_rtol")
+        assert database.getString(prefix + "snes_linesearch_type") == "bt"
+        assert database.getInt(prefix + "snes_max_it") == 3
+        # An option a solver wrote and the user changed since is the user's from then on.
+        database[prefix + "snes_linesearch_type"] = "basic"
+        PetscOptionsPrefix(prefix).replace({"snes_linesearch_type": "cp"})
+        assert database.getString(prefix + "snes_linesearch_type") == "basic"
+        PetscOptionsPrefix(prefix).replace({})
+        assert database.getString(prefix + "snes_linesearch_type") == "basic"
+        assert database.getInt(prefix + "snes_max_it") == 3
+    finally:
+        for name in ("snes_max_it", "snes_linesearch_type"):
+            database.delValue(prefix + name)
+
+
+def test_a_user_face_option_overrides_the_problem_default():
+    """-face_snes_max_it given by the user (here after other solvers of this process wrote their
+    own value) beats the solver's default (25) and a FaceProblem's petsc_options; the FaceProblem
+    built after the user's option is gone gets the default back."""
+    FaceProblem(slab_model())
+    database = PETSc.Options()
+    database["face_snes_max_it"] = 7
+    try:
+        problem = FaceProblem(slab_model(), petsc_options={"snes_max_it": 40})
+        assert problem.solver.snes.getTolerances()[3] == 7
+        assert database.getInt("face_snes_max_it") == 7
+    finally:
+        database.delValue("face_snes_max_it")
+    assert FaceProblem(slab_model()).solver.snes.getTolerances()[3] == 25
+
+
+def test_the_tangent_structure_is_explicit():
+    problem = FaceProblem(slab_model())
+    assert problem.solver.tangent_structure == "spd"
+    assert problem.solver.tangent.isSymmetricKnown() == (True, True)
+    with pytest.raises(ValueError, match="tangent = 'cholesky'"):
+        QuasistaticSolver(problem.solver.residual_form, problem.u, problem.bcs, tangent="cholesky")
