@@ -67,7 +67,7 @@ VARIANTS = {
 def _fit_fast_variant():
     """``fit --fast`` (``face_dolfinx.tracking.PRESETS["fast"]``), the production setting of docs/performance.md."""
     import dataclasses
-    from face_dolfinx.fitting.fitter import FitSettings
+    from face_dolfinx.fitting import FitSettings
     from face_dolfinx.tracking import PRESETS
     fast = PRESETS["fast"]
     changed = {f.name: getattr(fast.fit, f.name) for f in dataclasses.fields(FitSettings)
@@ -129,7 +129,7 @@ def run(args) -> None:
     from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.fitting.baselines import ActuationBasis, LinearFitter, LinearizedModel
     from face_dolfinx.model.bones import AffineMap
-    from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet
+    from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
     from face_dolfinx.tracking import track
     from face_dolfinx.model.folder import load_model
     from face_dolfinx.physics.problem import FaceProblem

@@ -285,7 +285,7 @@ def forward_study(model, loads: dict, write, study: str) -> None:
 def remote_study(model, args, write) -> None:
     """Single-frame fits of REMOTE_TARGETS from rest (or the opposite guess), every REMOTE_METHOD."""
     from face_dolfinx.model.bones import jaw_pose
-    from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet
+    from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
     from face_dolfinx.physics.problem import FaceProblem
     from face_dolfinx.equilibrium.solver import EquilibriumError
     from face_dolfinx.fitting import penalties
@@ -427,7 +427,7 @@ def damaged_takes(clean: np.ndarray, seed: int):
 
 
 def damage_study(model, args, write) -> None:
-    from face_dolfinx.fitting.fitter import FaceFitter, MarkerSet
+    from face_dolfinx.fitting import FaceFitter, MarkerSet
     from face_dolfinx.tracking import track
     from face_dolfinx.physics.problem import FaceProblem
     from face_dolfinx.equilibrium.solver import EquilibriumError

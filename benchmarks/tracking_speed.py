@@ -53,7 +53,7 @@ LOOSE = dict(newton_tolerance=1e-4)  # mm
 def _variants() -> dict:
     """name: (TrackingSettings, further FaceProblem keywords, FactorReusePolicy attributes)."""
     from face_dolfinx.tracking import PRESETS, TrackingSettings
-    from face_dolfinx.fitting.fitter import FitSettings
+    from face_dolfinx.fitting import FitSettings
     reuse = dict(reuse_factorization=True)
     return {
         "fresh": (PRESETS["default"], {}, {}),
@@ -132,7 +132,7 @@ def main():
 
     from face_dolfinx.alignment.placement import place_on_model
     from face_dolfinx.capture.synthetic import synthesize_take
-    from face_dolfinx.fitting.fitter import MarkerSet
+    from face_dolfinx.fitting import MarkerSet
     from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.model.folder import load_model
     from face_dolfinx.physics.problem import FaceProblem

@@ -21,7 +21,7 @@ import numpy as np
 
 from face_dolfinx.alignment.placement import place_on_model
 from face_dolfinx.capture.synthetic import save_truth, synthesize_take
-from face_dolfinx.fitting.fitter import MarkerSet
+from face_dolfinx.fitting import MarkerSet
 from face_dolfinx.model.anatomy import build_builtin_face
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.problem import FaceProblem

@@ -22,7 +22,7 @@ import pytest
 from face_dolfinx.fitting.baselines import (ActuationBasis, LinearFitter, LinearizedModel, tmj_limits,
                                     upper_face_regions)
 from face_dolfinx.model.bones import jaw_pose, rigid_map, rotation
-from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet
+from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
 from face_dolfinx.tracking import track
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.problem import FaceProblem

@@ -55,7 +55,7 @@ def fit_args(model, out, *more):
 def test_correspondence_aligned_fit_of_a_users_take(model, shared_dir):
     """A 3-frame synthetic smile with head motion, renamed and moved into a lab frame: aligned by
     the correspondences on its neutral frame, the fit reaches the noise, names kept throughout."""
-    from face_dolfinx.fitting.fitter import MarkerSet
+    from face_dolfinx.fitting import MarkerSet
     from face_dolfinx.physics.problem import FaceProblem
     from face_dolfinx.capture.synthetic import synthesize_take
     names, sites, correspondence = user_sites(model)

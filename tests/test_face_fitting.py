@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from face_dolfinx.model.bones import jaw_pose
-from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet
+from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
 from face_dolfinx.tracking import track
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.problem import FaceProblem

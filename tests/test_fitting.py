@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from face_dolfinx.model.bones import jaw_pose, rigid_map, rotation
-from face_dolfinx.fitting.fitter import FaceFitter, FitSettings, MarkerSet
+from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
 from face_dolfinx.physics.problem import FaceProblem
 from slab import slab_model
 
@@ -192,9 +192,10 @@ def test_warm_frame_activation_steps_stay_in_the_trust_region(take):
     radius = 0.05
     fitter, _ = fit(model, sites, targets, activation_trust_radius=radius, first_frame_gn_steps=10)
     steps = []
-    solve_step = fitter._gn_step
-    fitter._gn_step = lambda state, jac, residual: steps.append(
-        (fitter.trust_radius, solve_step(state, jac, residual))) or steps[-1][1]
+    formulation = fitter.formulation
+    solve_step = formulation.step
+    formulation.step = lambda state, A, b: steps.append(
+        (formulation.trust_radius, solve_step(state, A, b))) or steps[-1][1]
     far = FaceProblem(model)
     far.solve(activations=np.array([0.1, 0.8, 0.2]), cranium=HEAD, jaw=jaw_pose(model.jaw, *TMJ_TRUE))
     fitter.fit_frame(MarkerSet(far, sites).positions(far.u.x.array, HEAD), max_steps=4)

@@ -5,7 +5,7 @@ from mpi4py import MPI
 import pytest
 
 from face_dolfinx.cli.main import parse_arguments, tracking_settings
-from face_dolfinx.fitting.fitter import FitSettings
+from face_dolfinx.fitting import FitSettings
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.tracking import PRESETS, RECORD_FIELDS, SettingError, Tracker, TrackingSettings
 

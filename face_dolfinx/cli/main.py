@@ -147,7 +147,7 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
 def synth(model, args) -> None:
     """Solve the face along a scenario, sample its marker sites, write capture + truth."""
     from face_dolfinx.capture import write_capture
-    from face_dolfinx.fitting.fitter import MarkerSet
+    from face_dolfinx.fitting import MarkerSet
     from face_dolfinx.physics.problem import FaceProblem
     from face_dolfinx.capture.synthetic import save_truth, synthesize_take, truth_path
     out = pathlib.Path(args.out)
@@ -231,7 +231,7 @@ def _naming(path):
         raise SubjectError(f"{path}: {error}") from None
 
 
-def tracking_settings(args) -> "TrackingSettings":
+def tracking_settings(args):
     """The fit command's settings: its preset (``--fast`` or the default), with every option given on
     the command line or in the --config file in place of the preset's."""
     from face_dolfinx.tracking import PRESETS, RECORD_FIELDS, SettingError

@@ -58,7 +58,8 @@ from scipy.optimize import lsq_linear
 
 from face_dolfinx.alignment.similarity import similarity_transform
 from face_dolfinx.model.bones import AffineMap, jaw_pose, rotation
-from .fitter import TMJ_STEP, FrameResult
+from .formulations import TMJ_STEP
+from .records import FrameResult
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity, bone_position_derivatives
 
 UPPER_FACE_MUSCLES = ("frontalis", "corrugator", "orbicularis_oculi")  # choe_ko2001 section 4.1.2

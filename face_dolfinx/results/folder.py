@@ -32,7 +32,7 @@ import shutil
 import numpy as np
 
 from face_dolfinx.model.bones import AffineMap
-from face_dolfinx.fitting.fitter import ControlState, FitCheckpoint, FrameResult
+from face_dolfinx.fitting import ControlState, FitCheckpoint, FrameResult
 from face_dolfinx.physics.problem import Controls
 from face_dolfinx.capture.synthetic import load_truth
 

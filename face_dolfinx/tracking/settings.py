@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields, replace
 
 from face_dolfinx.equilibrium.solver import REFRESH_CONTRACTION
-from face_dolfinx.fitting.fitter import FitSettings
+from face_dolfinx.fitting import FitSettings
 
 # record key (= fit option) -> (where it lives, field name): "fit" in FitSettings, "solver" here.
 RECORD_FIELDS = {

@@ -10,16 +10,16 @@ once every frame is done.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import functools
 import json
 import logging
 import pathlib
 
-from mpi4py import MPI
 import numpy as np
 
 from face_dolfinx.capture import Capture, chunk_ranges
 from face_dolfinx.capture.synthetic import load_truth
-from face_dolfinx.fitting.fitter import FaceFitter, FrameResult, MarkerSet
+from face_dolfinx.fitting import FaceFitter, FrameResult, MarkerSet
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.parallel import root_first
 from face_dolfinx.physics.problem import FaceProblem
@@ -177,7 +177,7 @@ class Tracker:
                         log.info("resuming %s at frame %d (%d frames already done)", folder.path, start, len(done))
                 stop = min(frames.stop, start + todo - len(results))
                 track(fitter, aligned.positions, range(start, stop),
-                      on_frame=lambda result: save(result, fitter, frames.start))
+                      on_frame=functools.partial(save, fitter=fitter, first=frames.start))
         self.comm.barrier()
         missing = root_first(folder.missing_frames, self.comm)
         if not missing:
