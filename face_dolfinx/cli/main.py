@@ -118,7 +118,8 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
     ``coarse_model`` of the same face, each solve starts from the coarse model's equilibrium
     (``face_dolfinx.equilibrium.coarse``)."""
     from face_dolfinx.equilibrium.coarse import CoarseStart
-    from face_dolfinx.results.xdmf import FaceWriter, atomic_directory
+    from face_dolfinx.files import atomic_directory
+    from face_dolfinx.results.xdmf import FaceWriter
     from face_dolfinx.physics.problem import FaceProblem
     comm = MPI.COMM_WORLD
     for name in expressions:  # fail before any work, not halfway through
@@ -271,7 +272,8 @@ def fit(model, args) -> None:
     from face_dolfinx.model.folder import load_model
     from face_dolfinx.results.xdmf import FileNodeOrder
     from face_dolfinx.physics.problem import FaceProblem
-    from face_dolfinx.results.folder import FitFolder, FitFolderError, atomic_write_text
+    from face_dolfinx.files import atomic_write
+    from face_dolfinx.results.folder import FitFolder, FitFolderError
     from face_dolfinx.capture.synthetic import load_truth, truth_path
     comm = MPI.COMM_WORLD
     capture_path = pathlib.Path(args.capture)
@@ -315,7 +317,7 @@ def fit(model, args) -> None:
         log.info("%s already holds this fit, finished: nothing to do (run.py report %s rebuilds its "
                  "plots; --overwrite fits again)", folder.path, folder.path)
         return
-    _root_first(lambda: atomic_write_text(folder.path / "alignment.json", alignment_record))
+    _root_first(lambda: atomic_write(folder.path / "alignment.json", alignment_record))
     _setup_logging(folder.path, verbose=args.verbose)
     done = set(range(capture.n_frames)) - set(_root_first(folder.missing_frames))
     chunks = chunk_ranges(capture.n_frames, args.chunks)
