@@ -211,6 +211,7 @@ def build_subject(args) -> None:
     from face_dolfinx.alignment.similarity import read_correspondence_file
     from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.capture import read_capture
+    from face_dolfinx.model.folder import read_model_arrays
     from face_dolfinx.subjects import adaptation as subject
     source = "subject" if args.subject else "surface"
     out = pathlib.Path(args.out)
@@ -219,7 +220,7 @@ def build_subject(args) -> None:
     def adapt():
         if out.exists() and not args.overwrite:  # before the work, not after
             raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
-        template = subject.read_model_arrays(template_path)
+        template = read_model_arrays(template_path)
         if args.subject:
             capture = read_capture(args.subject, units=args.units, up_axis=args.up_axis,
                                    check_scale=not args.no_scale_check)
