@@ -3,8 +3,9 @@
 A file is written under a temporary name beside it (``.NAME.tmp``), flushed to disk and renamed
 over its target (``os.replace``, atomic on POSIX file systems): a killed process leaves the old
 file or the new one, never half of one. A folder is built under a temporary name
-(``.NAME.partial-XXXXXXXX``) and renamed into place when complete. Hidden temporary names keep
-leftovers of a kill out of the way; the next write of the same file replaces its leftover.
+(``.NAME.partial-XXXXXXXX``) and renamed into place when complete. The temporary names are
+hidden, so what a kill leaves behind never looks like a result; the next write of the same file
+replaces a file's leftover, a folder's leftover stays until removed by hand.
 
 Under MPI, rank 0 of ``comm`` writes and renames; an error there is raised on every rank.
 """
