@@ -2,16 +2,17 @@
 from mpi4py import MPI
 
 
-def root_first(action, comm: MPI.Comm = MPI.COMM_WORLD):
-    """Run ``action`` on rank 0 and return its value on every rank; its exception is raised on
-    every rank, so that all of them stop, not only rank 0."""
+def on_rank_0(action, comm=MPI.COMM_SELF):
+    """``action()`` on rank 0 of ``comm``; its value on every rank, and its exception raised on
+    every rank (collective)."""
     value, error = None, None
     if comm.rank == 0:
         try:
             value = action()
-        except Exception as exc:  # re-raised below on every rank
+        except Exception as exc:  # every rank must stop, not only rank 0
             error = exc
-    error = comm.bcast(error, root=0)
+    if comm.size > 1:
+        value, error = comm.bcast((value, error), root=0)
     if error is not None:
         raise error
-    return comm.bcast(value, root=0)
+    return value

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from face_dolfinx.model.folder import ModelError, _toml, load_model, tet_volumes_and_quality
+from face_dolfinx.model.folder import (ModelError, _toml, load_model, read_model_arrays, skin_triangles,
+                                      tet_volumes_and_quality)
 
 
 @pytest.fixture(scope="module")
@@ -95,6 +96,64 @@ def test_skin_surface_on_every_rank(model, serial_model):
     normals = np.cross(b - a, c - a)
     front = np.linalg.norm(a - model.landmarks["nose_tip"], axis=1) < 5.0
     assert np.all(normals[front, 2] > 0)
+
+
+def test_skin_triangles_face_away_from_their_tet_in_the_distributed_mesh(model, builtin_model_path):
+    """Checked against DOLFINx's own facet-to-cell connectivity on each rank: the tet behind every
+    skin facet lies on the inner side of the triangle skin_surface gives for it."""
+    points, triangles = model.skin_surface()
+    skin_nodes = read_model_arrays(builtin_model_path, check=False).skin_nodes
+    normal_of = {tuple(sorted(skin_nodes[t])): np.cross(points[t[1]] - points[t[0]], points[t[2]] - points[t[0]])
+                 for t in triangles}
+    mesh, topology = model.mesh, model.mesh.topology
+    topology.create_connectivity(2, 3)
+    topology.create_connectivity(2, 0)
+    facets = model.facet_tags.find(model.boundary_ids["skin"])
+    cell_nodes = mesh.geometry.dofmap.array.reshape(-1, 4)
+    file_node = np.asarray(mesh.geometry.input_global_indices)
+    facet_cells, cell_vertices = topology.connectivity(2, 3), topology.connectivity(3, 0).array.reshape(-1, 4)
+    checked = 0
+    for facet in facets:
+        cell = facet_cells.links(facet)[0]
+        on_facet = np.isin(cell_vertices[cell], topology.connectivity(2, 0).links(facet))
+        corners = mesh.geometry.x[cell_nodes[cell]]
+        normal = normal_of[tuple(sorted(file_node[cell_nodes[cell][on_facet]]))]
+        assert normal @ (corners[~on_facet][0] - corners[on_facet][0]) < 0
+        checked += 1
+    assert model.mesh.comm.allreduce(checked) >= len(triangles)
+
+
+def test_skin_triangles_of_two_tets():
+    """Each facet turned, where needed, so that its normal points away from the tet it bounds."""
+    points = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
+    cells = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    assert np.all(tet_volumes_and_quality(points[cells])[0] > 0)
+    facets = np.array([[0, 1, 2], [2, 1, 0], [4, 3, 2], [2, 3, 4]])
+    # z = 0 face of the first tet: outward is -z; face (2, 3, 4) of the second: outward is (1, 1, 1).
+    assert np.array_equal(skin_triangles(points, cells, facets), [[0, 2, 1], [2, 1, 0], [4, 2, 3], [2, 3, 4]])
+    with pytest.raises(ModelError, match=r"here: 1 facets that are no face of a tetrahedron, e.g. nodes \[0, 1, 4\]"):
+        skin_triangles(points, cells, np.array([[0, 1, 2], [0, 1, 4]]), "here")
+
+
+def test_arrays_written_and_read_back_are_the_same(builtin_model_path, tmp_path):
+    """read_model_arrays and ModelArrays.write (write_model) are each other's inverse."""
+    model = read_model_arrays(builtin_model_path)
+    again = read_model_arrays(model.write(tmp_path / "copy"))
+    for name in ("points", "cells", "facets", "facet_values", "skin_triangles"):
+        assert np.array_equal(getattr(again, name), getattr(model, name)), name
+    for before, after in zip(model.muscles, again.muscles):
+        assert (before.name, before.kind, before.peak_stress) == (after.name, after.kind, after.peak_stress)
+        for part in ("cells", "fraction", "fiber"):
+            assert np.array_equal(getattr(before, part), getattr(after, part))
+    for name in ("markers", "landmarks", "geometry"):
+        pairs = [(model.markers, again.markers), (model.landmarks, again.landmarks)] if name != "geometry" else \
+            [(b.geometry, a.geometry) for b, a in zip(model.muscles, again.muscles)]
+        for before, after in pairs:
+            assert list(before) == list(after) and all(np.array_equal(before[k], after[k]) for k in before)
+    assert (again.name, again.boundary_ids, again.material, again.expressions, again.info) == \
+        (model.name, model.boundary_ids, model.material, model.expressions, model.info)
+    assert again.info["tets"] == len(model.cells)
+    assert np.array_equal(again.jaw.v, model.jaw.v) and again.jaw.track_length == model.jaw.track_length
 
 
 # -- ModelError cases ---------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from dolfinx import fem
 
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.results.xdmf import FileNodeOrder, XdmfSeries
-from face_dolfinx.results.report import ModelMesh, _ranges
+from face_dolfinx.results.report import _ranges
 
 
 @pytest.fixture(scope="module")
@@ -44,19 +44,6 @@ def test_file_node_order_needs_p1(model):
         FileNodeOrder(fem.VectorFunctionSpace(model.mesh, ("CG", 2)))
 
 
-def test_skin_from_the_files_is_the_model_skin(model, builtin_model_path):
-    """The report's skin (read serially from the model files) has the triangles and the outward
-    orientation of FaceModel.skin_surface (from the distributed mesh)."""
-    points, triangles = model.skin_surface()
-    mesh = ModelMesh(builtin_model_path)
-    assert np.allclose(mesh.points[mesh.skin_nodes], points)
-
-    def canonical(tris):  # each triangle rotated to start at its smallest node: orientation kept
-        turn = np.argmin(tris, axis=1)
-        rolled = np.stack([np.roll(t, -k) for t, k in zip(tris, turn)])
-        return rolled[np.lexsort(rolled.T[::-1])]
-
-    assert np.array_equal(canonical(mesh.skin_triangles), canonical(triangles))
 
 
 def test_xdmf_series_reads_back(tmp_path):

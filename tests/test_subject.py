@@ -11,8 +11,7 @@ from scipy.spatial.transform import Rotation
 from face_dolfinx.alignment.similarity import Similarity
 from face_dolfinx.capture import Capture, write_capture
 from face_dolfinx.cli.main import main
-from face_dolfinx.model.folder import load_model
-from face_dolfinx.subjects.adaptation import read_model_arrays
+from face_dolfinx.model.folder import load_model, read_model_arrays
 from face_dolfinx.alignment.surface import SkinSurface
 from face_dolfinx.subjects.warp import inverted_tets
 from user_capture import user_sites, write_correspondence

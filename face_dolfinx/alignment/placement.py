@@ -21,7 +21,7 @@ import pathlib
 import numpy as np
 
 from face_dolfinx.capture import Capture, frames_with_gaps
-from face_dolfinx.parallel import root_first
+from face_dolfinx.parallel import on_rank_0
 from .similarity import (AlignmentError, AlignmentQuality, Similarity, align_by_correspondences, align_by_icp,
                          read_correspondence_file)
 from .surface import SkinSurface
@@ -155,7 +155,7 @@ def place_on_model(model, capture: Capture, neutral_frame: int = 0,
             pairs = read_correspondence_file(pairs)
         return place_capture(capture, neutral_frame, SkinSurface(skin_points, skin_triangles),
                              model.markers, model.landmarks, pairs)
-    placement = root_first(place, comm)
+    placement = on_rank_0(place, comm)
     log.info("%s", placement.summary())
     if placement.doubtful:
         reasons = (placement.details["warning"] if placement.quality is None

@@ -8,11 +8,11 @@ residual is negative (the C3D mark of an invalid sample); the writer marks gaps 
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
+from face_dolfinx.files import AtomicFile
 from ._capture import CaptureError
 from ._take import FileTake
 
@@ -77,8 +77,6 @@ def write(path: Path, names: list[str], positions: np.ndarray, units: str, frame
         "residuals": np.where(gap, -1.0, 0.0)[np.newaxis],
         "camera_masks": np.zeros((7, n_markers, n_frames), dtype=bool),
     }
-    # ezc3d appends ".c3d" to a path that doesn't end with it (e.g. "take.C3D"): write there, then move.
-    written = str(path) if str(path).endswith(".c3d") else f"{path}.c3d"
-    c3d.write(written)
-    if written != str(path):
-        os.replace(written, path)
+    # Whole or not at all; the temporary name ends in ".c3d", as ezc3d appends it to any other.
+    with AtomicFile(path, suffix=".c3d") as temporary:
+        c3d.write(str(temporary))

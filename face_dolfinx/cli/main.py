@@ -23,7 +23,7 @@ import time
 from mpi4py import MPI
 import numpy as np
 
-from face_dolfinx.parallel import root_first
+from face_dolfinx.parallel import on_rank_0
 
 log = logging.getLogger("face_dolfinx")
 
@@ -102,7 +102,8 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
     ``coarse_model`` of the same face, each solve starts from the coarse model's equilibrium
     (``face_dolfinx.equilibrium.coarse``)."""
     from face_dolfinx.equilibrium.coarse import CoarseStart
-    from face_dolfinx.results.xdmf import FaceWriter, atomic_directory
+    from face_dolfinx.files import atomic_directory
+    from face_dolfinx.results.xdmf import FaceWriter
     from face_dolfinx.physics.problem import FaceProblem
     comm = MPI.COMM_WORLD
     for name in expressions:  # fail before any work, not halfway through
@@ -170,7 +171,7 @@ def synth(model, args) -> None:
         out.parent.mkdir(parents=True, exist_ok=True)
         write_capture(capture, out)
         save_truth(truth_path(out), truth, model.muscle_names)
-    root_first(write)
+    on_rank_0(write, MPI.COMM_WORLD)
     log.info("wrote %s (%d frames, %d markers) and its truth %s", out, args.frames, len(names), truth_path(out))
 
 
@@ -179,6 +180,7 @@ def build_subject(args) -> None:
     from face_dolfinx.alignment.similarity import read_correspondence_file
     from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.capture import read_capture
+    from face_dolfinx.model.folder import read_model_arrays
     from face_dolfinx.subjects import adaptation as subject
     source = "subject" if args.subject else "surface"
     out = pathlib.Path(args.out)
@@ -187,7 +189,7 @@ def build_subject(args) -> None:
     def adapt():
         if out.exists() and not args.overwrite:  # before the work, not after
             raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
-        template = subject.read_model_arrays(template_path)
+        template = read_model_arrays(template_path)
         if args.subject:
             capture = read_capture(args.subject, units=args.units, up_axis=args.up_axis,
                                    check_scale=not args.no_scale_check)
@@ -216,7 +218,7 @@ def build_subject(args) -> None:
                 f"max {adaptation.max:.3f} mm ({worst}) from the subject's {len(adaptation.distances)} {what}; "
                 f"{adaptation.iterations} matching rounds"
                 f"{'' if adaptation.record['settled'] else ' (matches still sliding along the skin)'}")
-    log.info("%s", root_first(adapt))
+    log.info("%s", on_rank_0(adapt, MPI.COMM_WORLD))
     if MPI.COMM_WORLD.rank == 0:
         print(out.resolve())
 
@@ -509,7 +511,7 @@ def _main(argv=None) -> int:
 
     if args.command == "report":
         from face_dolfinx.results.report import write_report
-        root_first(lambda: write_report(args.folder, rendered_frames=args.renders))
+        on_rank_0(lambda: write_report(args.folder, rendered_frames=args.renders), MPI.COMM_WORLD)
         return 0
     if args.command == "demo":
         return demo(args)

@@ -1,17 +1,21 @@
-"""The face model: a folder (docs/model_format.md) and its in-memory form, ``FaceModel``.
+"""The face model folder (docs/model_format.md): the one place that reads and writes it.
 
 ``load_model`` reads a folder on any number of MPI ranks (the mesh is distributed by DOLFINx)
 and checks every part, raising ``ModelError`` with the file and the problem named. It is
 collective: every check that depends on the distributed mesh is reduced over the ranks, so all
-ranks raise together. ``write_model`` writes a folder from plain arrays (serially); the built-in
-face generator (``face_dolfinx.model.anatomy``) uses it, and so can a user converting their own model.
+ranks raise together. ``read_model_arrays`` reads a folder serially as plain arrays in the
+file's numbering (``ModelArrays``), for work on the whole model in one process (subject
+adaptation, the fit report). ``write_model`` writes a folder from plain arrays (serially); the
+built-in face generator (``face_dolfinx.model.anatomy``) uses it, and so can a user converting
+their own model. ``skin_triangles`` is the one extraction of the skin surface.
 """
 
 import difflib
 import math
 import re
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from functools import cached_property
 from pathlib import Path
 
 import h5py
@@ -25,6 +29,9 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 import ufl
 
+from face_dolfinx.alignment.surface import SkinSurface
+from face_dolfinx.parallel import on_rank_0
+
 MODEL_FILE, MESH_FILE, HEAVY_FILE, MUSCLES_FILE = "model.toml", "mesh.xdmf", "mesh.h5", "muscles.npz"
 MESH_NAME, TAGS_NAME = "flesh", "boundaries"
 BOUNDARY_NAMES = ("cranium", "mandible", "skin", "free")
@@ -32,6 +39,8 @@ MATERIAL_KEYS = ("mu10", "mu01", "kappa", "fiber_stress")
 MUSCLE_KINDS = ("linear", "sphincter")
 UNIT_TOLERANCE = 1e-6        # |fiber| must be 1 to this
 MARKER_TOLERANCE = 1.0       # mm: markers must lie this close to the skin
+# Faces of a tet as local node triples; face k is opposite node k.
+TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
 # Tet quality 6 sqrt(2) V / l_rms^3: 1 for the regular tet, 0 for a flat one. Below this a tet is
 # called degenerate: its stiffness would be meaningless and its Jacobian ill-conditioned.
 DEGENERATE_QUALITY = 1e-3
@@ -119,9 +128,10 @@ class FaceModel:
         """Points (n, 3) and triangles (m, 3) of the facets tagged skin, on EVERY rank.
 
         Collective. Triangles are oriented with outward normals (away from their tet); points
-        are the skin's mesh nodes, numbered in the order of the mesh file.
+        are the skin's mesh nodes in the order of the mesh file. Rank 0 reads them from the
+        model files (``ModelArrays.skin_surface``), so they do not depend on the distribution.
         """
-        return _skin_surface(self.mesh, self.facet_tags, self.boundary_ids["skin"])
+        return on_rank_0(lambda: read_model_arrays(self.path, check=False).skin_surface(), self.mesh.comm)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -195,7 +205,6 @@ def load_model(path, comm=MPI.COMM_WORLD) -> FaceModel:
             raise ModelError(f"{folder / name}: missing file")
     meta = _read_metadata(folder / MODEL_FILE)
     muscle_data = _read_muscles(folder / MUSCLES_FILE, meta["muscles"])
-
     try:
         with dolfinx_io.XDMFFile(comm, str(folder / MESH_FILE), "r") as xdmf:
             domain = _read_mesh_reproducibly(xdmf, MESH_NAME)
@@ -211,7 +220,7 @@ def load_model(path, comm=MPI.COMM_WORLD) -> FaceModel:
         count = comm.allreduce(len(tags.find(boundary_ids[key])), op=MPI.SUM)
         if count == 0:
             raise ModelError(f"{folder / MESH_FILE}: no facets tagged {key} (value {boundary_ids[key]})")
-    _check_sites(domain, tags, boundary_ids["skin"], meta["markers"], folder / MODEL_FILE)
+    _check_sites(folder, boundary_ids["skin"], meta["markers"], comm)
 
     # File cell index -> local cell index (owned and ghost), -1 where not on this rank.
     original = np.asarray(domain.topology.original_cell_index, dtype=np.int64)
@@ -322,8 +331,11 @@ def _read_metadata(path: Path) -> dict:
                     fail(f"{where} = {value}: activations must lie in [0, 1]")
             checked[key] = float(value)
         expressions[expression] = checked
+    info = data.get("generator", {})
+    if not isinstance(info, dict):
+        fail("[generator] must be a table")
     return dict(name=str(name), material=material, boundaries=boundaries, muscles=muscles, jaw=jaw,
-                markers=sites["markers"], landmarks=sites["landmarks"], expressions=expressions)
+                markers=sites["markers"], landmarks=sites["landmarks"], expressions=expressions, info=info)
 
 
 def _read_muscles(path: Path, entries: list[dict]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -401,69 +413,141 @@ def _check_cells(domain, path: Path) -> None:
         raise ModelError(f"{path}: " + " and ".join(problems))
 
 
-def _check_sites(domain, tags, skin_id: int, markers: dict[str, np.ndarray], path: Path) -> None:
-    """Every marker within MARKER_TOLERANCE of the skin facets (reduced over the ranks)."""
-    from face_dolfinx.alignment.surface import SkinSurface
+def _check_sites(folder: Path, skin_id: int, markers: dict[str, np.ndarray], comm) -> None:
+    """Every marker within MARKER_TOLERANCE of the skin facets (rank 0 reads, all ranks raise)."""
+    def far_markers() -> str | None:
+        points, cells, facets, values = read_mesh_arrays(folder)
+        skin = SkinSurface(points, skin_triangles(points, cells, facets[values == skin_id], folder / HEAVY_FILE))
+        distance = skin.closest(np.array(list(markers.values())))[3]
+        far = np.flatnonzero(distance > MARKER_TOLERANCE)
+        if not far.size:
+            return None
+        names = list(markers)
+        listed = ", ".join(f"{names[i]} ({distance[i]:.3g} mm)" for i in far[:5])
+        return (f"{folder / MODEL_FILE}: markers farther than {MARKER_TOLERANCE} mm from the skin "
+                f"({far.size} of {len(markers)}): {listed}")
 
     if not markers:
         return
-    points, triangles = _local_skin(domain, tags, skin_id)
-    query = np.array(list(markers.values()))
-    distance = np.full(len(query), np.inf)
-    if len(triangles):
-        distance = SkinSurface(points, triangles).closest(query)[3]
-    domain.comm.Allreduce(MPI.IN_PLACE, distance, op=MPI.MIN)
-    far = np.flatnonzero(distance > MARKER_TOLERANCE)
-    if far.size:
-        names = list(markers)
-        listed = ", ".join(f"{names[i]} ({distance[i]:.3g} mm)" for i in far[:5])
-        raise ModelError(f"{path}: markers farther than {MARKER_TOLERANCE} mm from the skin "
-                         f"({far.size} of {len(query)}): {listed}")
+    problem = on_rank_0(far_markers, comm)
+    if problem:
+        raise ModelError(problem)
 
 
 # ---------------------------------------------------------------------------------------------
-# The skin surface of a distributed mesh
+# The model as plain arrays (serial, the file's numbering)
 # ---------------------------------------------------------------------------------------------
-def _local_skin(domain, tags, skin_id: int) -> tuple[np.ndarray, np.ndarray]:
-    """This rank's skin facets as (geometry node coordinates, triangles of local node indices),
-    oriented away from their tet."""
-    topology = domain.topology
-    topology.create_connectivity(2, 3)
-    topology.create_connectivity(2, 0)
-    facets = tags.find(skin_id)
-    facet_vertices = topology.connectivity(2, 0).array.reshape(-1, 3)[facets]
-    cell_of_facet = topology.connectivity(2, 3)
-    cells = cell_of_facet.array[cell_of_facet.offsets[facets]]
-    cell_vertices = topology.connectivity(3, 0).array.reshape(-1, 4)
-    # Topology vertices and geometry nodes of a linear mesh pair up cell by cell.
-    node_of_vertex = np.empty(topology.index_map(0).size_local + topology.index_map(0).num_ghosts, dtype=np.int32)
-    node_of_vertex[cell_vertices.reshape(-1)] = domain.geometry.dofmap.array
-    triangles = node_of_vertex[facet_vertices]
-    x = domain.geometry.x
-    # The tet's fourth node (the one not on the facet) must lie behind the triangle.
-    tet_nodes = node_of_vertex[cell_vertices[cells]]
-    on_facet = (tet_nodes[:, :, None] == triangles[:, None, :]).any(axis=2)
-    apex = tet_nodes[~on_facet]
-    a, b, c = (x[triangles[:, k]] for k in range(3))
-    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), x[apex] - a) > 0
+def read_mesh_arrays(path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh of the model folder ``path`` as mesh.h5 holds it: points (n, 3), cells (m, 4)
+    int64, facets (k, 3) int64 and their tag values (k,)."""
+    heavy = Path(path) / HEAVY_FILE
+    try:
+        with h5py.File(heavy, "r") as h5:
+            mesh, tags = f"Mesh/{MESH_NAME}", f"MeshTags/{TAGS_NAME}"
+            return (h5[f"{mesh}/geometry"][...], h5[f"{mesh}/topology"][...].astype(np.int64),
+                    h5[f"{tags}/topology"][...].astype(np.int64), h5[f"{tags}/Values"][...].reshape(-1))
+    except (OSError, KeyError) as error:
+        raise ModelError(f"{heavy}: cannot read the mesh {MESH_NAME!r} and facet tags {TAGS_NAME!r}: "
+                         f"{error}") from error
+
+
+def skin_triangles(points: np.ndarray, cells: np.ndarray, facets: np.ndarray, where="the mesh") -> np.ndarray:
+    """The boundary ``facets`` (k, 3) of the tets ``cells`` (m, 4), in their order, each oriented
+    away from its tet (outward normal by the right-hand rule). ModelError (naming ``where``) if a
+    facet is no face of a tet."""
+    if not len(facets):
+        return np.zeros((0, 3), dtype=np.int64)
+    # Only tets with three nodes on the facets can own one; their nodes are numbered compactly so
+    # that a sorted node triple is one int64 key.
+    nodes = np.unique(facets)
+    number = np.full(len(points), -1, dtype=np.int64)
+    number[nodes] = np.arange(len(nodes))
+    candidates = cells[np.count_nonzero(number[cells] >= 0, axis=1) >= 3]
+    faces = number[candidates[:, TET_FACES].reshape(-1, 3)]
+    complete = np.all(faces >= 0, axis=1)
+    apex_of_face = candidates.reshape(-1)[complete]  # face k of a tet is opposite its node k
+
+    def key(triples):
+        ordered = np.sort(triples, axis=1)
+        return (ordered[:, 0] * len(nodes) + ordered[:, 1]) * len(nodes) + ordered[:, 2]
+
+    face_keys, facet_keys = key(faces[complete]), key(number[facets])
+    order = np.argsort(face_keys)
+    slot = np.searchsorted(face_keys[order], facet_keys)
+    found = slot < len(order)
+    found[found] = face_keys[order[slot[found]]] == facet_keys[found]
+    if not found.all():
+        bad = np.flatnonzero(~found)
+        raise ModelError(f"{where}: {bad.size} facets that are no face of a tetrahedron, e.g. nodes "
+                         f"{facets[bad[0]].tolist()}")
+    triangles = np.array(facets, dtype=np.int64)
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), points[apex_of_face[order[slot]]] - a) > 0
     triangles[inward] = triangles[inward][:, [0, 2, 1]]
-    return x, triangles
+    return triangles
 
 
-def _skin_surface(domain, tags, skin_id: int) -> tuple[np.ndarray, np.ndarray]:
-    comm = domain.comm
-    x, triangles = _local_skin(domain, tags, skin_id)
-    file_node = np.asarray(domain.geometry.input_global_indices, dtype=np.int64)
-    gathered = comm.allgather((file_node[triangles], x[np.unique(triangles)],
-                               file_node[np.unique(triangles)]))
-    triangles = np.concatenate([g[0] for g in gathered])
-    coords = np.concatenate([g[1] for g in gathered])
-    nodes = np.concatenate([g[2] for g in gathered])
-    # Shared facets appear on two ranks: keep one copy of each triangle and of each node.
-    _, first = np.unique(np.sort(triangles, axis=1), axis=0, return_index=True)
-    triangles = triangles[np.sort(first)]
-    nodes, unique = np.unique(nodes, return_index=True)
-    return coords[unique], np.searchsorted(nodes, triangles)
+@dataclass
+class ModelArrays:
+    """A model folder as plain arrays, in the terms of ``write_model`` (muscle cells are file cells)."""
+
+    name: str
+    points: np.ndarray          # (n, 3) mm
+    cells: np.ndarray           # (m, 4) positively oriented tets
+    facets: np.ndarray          # (k, 3) node triples
+    facet_values: np.ndarray    # (k,) tag values
+    boundary_ids: dict[str, int]
+    muscles: list[Muscle]
+    jaw: JawGeometry
+    markers: dict[str, np.ndarray]
+    landmarks: dict[str, np.ndarray]
+    material: dict[str, float]
+    expressions: dict[str, dict]
+    info: dict = field(default_factory=dict)   # the [generator] table
+
+    @cached_property
+    def skin_triangles(self) -> np.ndarray:
+        """The facets tagged skin (file nodes, file order), oriented away from their tet."""
+        return skin_triangles(self.points, self.cells,
+                              self.facets[self.facet_values == self.boundary_ids["skin"]], self.name)
+
+    @property
+    def skin_nodes(self) -> np.ndarray:
+        """The file nodes of the skin, ascending."""
+        return np.unique(self.skin_triangles)
+
+    def skin(self, points=None) -> SkinSurface:
+        """The skin triangles over ``points`` (default: the model's own nodes)."""
+        return SkinSurface(self.points if points is None else points, self.skin_triangles)
+
+    def skin_surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """Points (n, 3) of the skin nodes (ascending file numbers) and the oriented skin
+        triangles (m, 3) over them."""
+        nodes = self.skin_nodes
+        return self.points[nodes], np.searchsorted(nodes, self.skin_triangles)
+
+    def write(self, path) -> Path:
+        """Write the model folder ``path`` (``write_model``)."""
+        return write_model(path, **{f.name: getattr(self, f.name) for f in fields(self)})
+
+
+def read_model_arrays(path, *, check: bool = True) -> ModelArrays:
+    """The model folder ``path`` as plain arrays (serial).
+
+    With ``check`` it is first loaded on this process alone, and so checked in full; without,
+    model.toml and muscles.npz are checked but not the mesh (for a folder known to load).
+    """
+    folder = Path(path)
+    if check:
+        load_model(folder, MPI.COMM_SELF)
+    meta = _read_metadata(folder / MODEL_FILE)
+    muscle_data = _read_muscles(folder / MUSCLES_FILE, meta["muscles"])
+    points, cells, facets, values = read_mesh_arrays(folder)
+    muscles = [Muscle(entry["name"], entry["kind"], entry["peak_stress"], file_cells, fraction, fiber,
+                      entry["geometry"])
+               for entry, (file_cells, fraction, fiber) in zip(meta["muscles"], muscle_data)]
+    return ModelArrays(meta["name"], points, cells, facets, values, meta["boundaries"], muscles, meta["jaw"],
+                       meta["markers"], meta["landmarks"], meta["material"], meta["expressions"], meta["info"])
 
 
 # ---------------------------------------------------------------------------------------------

@@ -25,7 +25,6 @@ be resumed with any number of ranks; with the same number it continues bit for b
 import csv
 import io
 import json
-import os
 import pathlib
 import shutil
 
@@ -35,6 +34,7 @@ from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.fitting import ControlState, FitCheckpoint, FrameResult
 from face_dolfinx.physics.problem import Controls
 from face_dolfinx.capture.synthetic import load_truth
+from face_dolfinx.files import atomic_write
 
 IN_PROGRESS = "IN_PROGRESS"
 RUN_FILE, TAKE_FILE, TRUTH_FILE = "run.json", "take.json", "truth.npz"
@@ -42,21 +42,6 @@ RUN_FILE, TAKE_FILE, TRUTH_FILE = "run.json", "take.json", "truth.npz"
 
 class FitFolderError(FileExistsError):
     """The output folder holds something a fit must not replace or resume."""
-
-
-def atomic_write_text(path: pathlib.Path, text: str) -> None:
-    _atomic_write(path, lambda handle: handle.write(text.encode()))
-
-
-def _atomic_write(path: pathlib.Path, write) -> None:
-    """Write through a temporary file, flushed to disk, then renamed over ``path``: a kill
-    leaves the old file or the new one, never half of one."""
-    temporary = path.with_name(f".{path.name}.tmp")
-    with open(temporary, "wb") as handle:
-        write(handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(temporary, path)
 
 
 def frame_to_dict(result: FrameResult) -> dict:
@@ -151,10 +136,10 @@ class FitFolder:
                     return cls(path), True
         (path / "frames").mkdir(parents=True, exist_ok=True)
         (path / IN_PROGRESS).touch()
-        atomic_write_text(path / RUN_FILE, json.dumps(settings, indent=2))
-        atomic_write_text(path / TAKE_FILE, json.dumps(take))
+        atomic_write(path / RUN_FILE, json.dumps(settings, indent=2))
+        atomic_write(path / TAKE_FILE, json.dumps(take))
         if truth_file is not None:
-            _atomic_write(path / TRUTH_FILE, lambda handle: handle.write(pathlib.Path(truth_file).read_bytes()))
+            atomic_write(path / TRUTH_FILE, pathlib.Path(truth_file).read_bytes())
         return cls(path), False
 
     @property
@@ -185,11 +170,11 @@ class FitFolder:
                     displacement: np.ndarray) -> None:
         """One finished frame: its displacement (file node order) first, then the record that
         says the frame is done."""
-        _atomic_write(self._frame_file(result.frame, ".displacement.npy"),
+        atomic_write(self._frame_file(result.frame, ".displacement.npy"),
                       lambda handle: np.save(handle, displacement))
         record = frame_to_dict(result)
         record.update(captured_markers=_nullable(captured), simulated_markers=_nullable(simulated))
-        atomic_write_text(self._frame_file(result.frame, ".json"), json.dumps(record))
+        atomic_write(self._frame_file(result.frame, ".json"), json.dumps(record))
 
     def frame_markers(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """Captured (NaN rows for gaps) and simulated marker positions (markers, 3) of a frame."""
@@ -219,7 +204,7 @@ class FitFolder:
             arrays.update(jacobian_dofs=jacobian_dofs, jacobian_markers=checkpoint.jacobian_markers,
                           **_state_arrays("jacobian_state", checkpoint.jacobian_state))
         self.checkpoint_dir.mkdir(exist_ok=True)
-        _atomic_write(self.checkpoint_dir / f"{frame:06d}.npz", lambda handle: np.savez(handle, **arrays))
+        atomic_write(self.checkpoint_dir / f"{frame:06d}.npz", lambda handle: np.savez(handle, **arrays))
 
     def load_checkpoint(self, frame: int, node_order) -> FitCheckpoint | None:
         """The state saved after ``frame`` on this rank's part of the mesh, None if there is
@@ -248,10 +233,10 @@ class FitFolder:
         results = [r for _, r in sorted(self.finished_frames().items())]
         truth = load_truth(self.truth_file) if self.truth_file else None
         times = self.times
-        atomic_write_text(self.path / "activations.csv", _table(
+        atomic_write(self.path / "activations.csv", _table(
             ["frame", "time_s"] + list(self.muscle_names),
             [[r.frame, times[r.frame], *r.activations] for r in results]))
-        atomic_write_text(self.path / "kinematics.csv", _table(
+        atomic_write(self.path / "kinematics.csv", _table(
             ["frame", "time_s"] + [f"cranium_M{i}{j}" for i in range(3) for j in range(3)]
             + ["cranium_tx", "cranium_ty", "cranium_tz"]
             + [f"jaw_M{i}{j}" for i in range(3) for j in range(3)] + ["jaw_tx", "jaw_ty", "jaw_tz"]
@@ -259,7 +244,7 @@ class FitFolder:
             [[r.frame, times[r.frame], *r.cranium.matrix.reshape(-1), *r.cranium.translation,
               *r.jaw.matrix.reshape(-1), *r.jaw.translation,
               *(r.jaw_tmj if r.jaw_tmj is not None else [np.nan] * 3)] for r in results]))
-        atomic_write_text(self.path / "marker_errors.csv", _table(
+        atomic_write(self.path / "marker_errors.csv", _table(
             ["frame"] + list(self.marker_names), [[r.frame, *r.marker_errors] for r in results]))
         columns = ["frame", "rms_error_mm", "max_error_mm", "initial_rms_mm", "gn_steps"]
         rows = [[r.frame, r.rms_error, r.max_error, r.initial_rms, r.gn_steps] for r in results]
@@ -271,9 +256,9 @@ class FitFolder:
         columns += ["observability", "unobservable", "flag"]
         for row, r in zip(rows, results):
             row += [r.observability, " ".join(r.unobservable), r.flag]
-        atomic_write_text(self.path / "frames.csv", _table(columns, rows))
+        atomic_write(self.path / "frames.csv", _table(columns, rows))
         phases = ("sensitivities", "gn_solve", "equilibrium", "line_search")
-        atomic_write_text(self.path / "timings.csv", _table(
+        atomic_write(self.path / "timings.csv", _table(
             ["frame", "seconds"] + [f"{phase}_s" for phase in phases],
             [[r.frame, r.seconds, *(r.phases.get(phase, 0.0) for phase in phases)] for r in results]))
 

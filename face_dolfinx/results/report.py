@@ -17,9 +17,7 @@ the result does not depend on how many ranks, chunks or resumes produced the fra
 import logging
 import math
 from pathlib import Path
-import tomllib
 
-import h5py
 import matplotlib
 
 matplotlib.use("Agg")
@@ -30,13 +28,12 @@ from .xdmf import XdmfSeries  # noqa: E402
 from .render import render_skin  # noqa: E402
 from .folder import FitFolder  # noqa: E402
 from face_dolfinx.capture.synthetic import load_truth  # noqa: E402
+from face_dolfinx.model.folder import ModelArrays, read_model_arrays  # noqa: E402
 
 log = logging.getLogger(__name__)
 
 MOST_ACTIVE = 6      # muscles drawn in activations.png
 RENDERED_FRAMES = 4  # frames rendered, evenly spread over the take
-# Faces of a tet as local node triples; face k is opposite node k.
-TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
 
 
 def write_report(path, rendered_frames: int = RENDERED_FRAMES) -> list[Path]:
@@ -50,57 +47,13 @@ def write_report(path, rendered_frames: int = RENDERED_FRAMES) -> list[Path]:
     if not results:
         raise ValueError(f"{folder.path}: no finished frame to report on")
     truth = load_truth(folder.truth_file) if folder.truth_file else None
-    mesh = ModelMesh(folder.settings["model"])
+    model = read_model_arrays(folder.settings["model"], check=False)
     written = [_plot_activations(folder, results, truth), _plot_kinematics(folder, results, truth),
                _plot_marker_error(folder, results, truth)]
-    written += _render_frames(folder, results, mesh, rendered_frames)
-    written.append(_write_series(folder, results, mesh))
+    written += _render_frames(folder, results, model, rendered_frames)
+    written.append(_write_series(folder, results, model))
     log.info("report of %s: %s", folder.path, ", ".join(str(p.relative_to(folder.path)) for p in written))
     return written
-
-
-class ModelMesh:
-    """The parts of a model folder the report needs, read from its files (file numbering)."""
-
-    def __init__(self, model_path):
-        folder = Path(model_path)
-        meta = tomllib.loads((folder / "model.toml").read_text())
-        with h5py.File(folder / "mesh.h5", "r") as h5:
-            self.points = h5["Mesh/flesh/geometry"][:]
-            self.cells = h5["Mesh/flesh/topology"][:].astype(np.int64)
-            facets = h5["MeshTags/boundaries/topology"][:].astype(np.int64)
-            values = h5["MeshTags/boundaries/Values"][:].reshape(-1)
-        self.skin_nodes, self.skin_triangles = _skin(self.points, self.cells,
-                                                     facets[values == meta["boundaries"]["skin"]])
-        self.muscle_names = [entry["name"] for entry in meta["muscles"]]
-        with np.load(folder / "muscles.npz") as data:
-            self.muscle_cells = [data[f"{name}/cells"] for name in self.muscle_names]
-            self.muscle_fractions = [data[f"{name}/fraction"] for name in self.muscle_names]
-
-
-def _skin(points: np.ndarray, cells: np.ndarray, facets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Skin nodes (file numbers) and triangles over them, oriented away from their tet."""
-    n = len(points)
-    if n >= 2**21:  # three node numbers must fit one int64 key
-        raise ValueError(f"{n} mesh nodes: too many for the report's facet matching")
-
-    def key(triples):
-        ordered = np.sort(triples, axis=1)
-        return (ordered[:, 0] * n + ordered[:, 1]) * n + ordered[:, 2]
-
-    faces = cells[:, TET_FACES].reshape(-1, 3)
-    face_keys = key(faces)
-    order = np.argsort(face_keys)
-    position = order[np.searchsorted(face_keys[order], key(facets)).clip(max=len(order) - 1)]
-    if not np.array_equal(face_keys[position], key(facets)):
-        raise ValueError("skin facets that are no face of a tetrahedron")
-    apex = cells.reshape(-1)[position]  # face k of a tet is opposite its node k
-    triangles = facets.copy()
-    a, b, c = (points[triangles[:, k]] for k in range(3))
-    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), points[apex] - a) > 0
-    triangles[inward] = triangles[inward][:, [0, 2, 1]]
-    nodes = np.unique(triangles)
-    return nodes, np.searchsorted(nodes, triangles)
 
 
 def _series(results: dict, frames: int, value) -> np.ndarray:
@@ -202,7 +155,7 @@ def _plot_marker_error(folder: FitFolder, results: dict, truth) -> Path:
     return _save(figure, folder.path / "marker_error.png")
 
 
-def _render_frames(folder: FitFolder, results: dict, mesh: ModelMesh, count: int) -> list[Path]:
+def _render_frames(folder: FitFolder, results: dict, model: ModelArrays, count: int) -> list[Path]:
     frames = sorted(results)
     chosen = sorted({frames[i] for i in np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)})
     out = folder.path / "renders"
@@ -210,32 +163,33 @@ def _render_frames(folder: FitFolder, results: dict, mesh: ModelMesh, count: int
     for stale in out.glob("frame_*.png"):  # a rerun of the report may choose other frames
         stale.unlink()
     written = []
+    skin_points, skin_triangles = model.skin_surface()
+    skin_nodes = model.skin_nodes
     for frame in chosen:
-        displacement = folder.displacement(frame)
-        moved = mesh.points[mesh.skin_nodes] + displacement[mesh.skin_nodes]
+        moved = skin_points + folder.displacement(frame)[skin_nodes]
         captured, simulated = folder.frame_markers(frame)
         title = (f"frame {frame} ({folder.times[frame]:.2f} s): marker RMS {results[frame].rms_error:.2f} mm\n"
                  f"red: captured, green: simulated")
-        written.append(render_skin(moved, mesh.skin_triangles, out / f"frame_{frame:06d}.png",
+        written.append(render_skin(moved, skin_triangles, out / f"frame_{frame:06d}.png",
                                    markers=captured, other_markers=simulated, title=title))
     return written
 
 
-def _write_series(folder: FitFolder, results: dict, mesh: ModelMesh) -> Path:
+def _write_series(folder: FitFolder, results: dict, model: ModelArrays) -> Path:
     path = folder.path / "face.xdmf"
     fractions = []
-    for cells, fraction in zip(mesh.muscle_cells, mesh.muscle_fractions):
-        field = np.zeros(len(mesh.cells))
-        field[cells] = fraction
+    for muscle in model.muscles:
+        field = np.zeros(len(model.cells))
+        field[muscle.cells] = muscle.fraction
         fractions.append(field)
-    with XdmfSeries(path, mesh.points, mesh.cells) as series:
+    with XdmfSeries(path, model.points, model.cells) as series:
         for frame in sorted(results):
-            displacement = np.zeros_like(mesh.points)
+            displacement = np.zeros_like(model.points)
             stored = folder.displacement(frame)
             displacement[:len(stored)] = stored  # nodes no cell uses (if any, last) do not move
             series.write(float(folder.times[frame]), {"displacement": displacement},
                          {f"activation_{name}": a * fraction for name, a, fraction
-                          in zip(mesh.muscle_names, results[frame].activations, fractions)})
+                          in zip([m.name for m in model.muscles], results[frame].activations, fractions)})
     return path
 
 

@@ -1,54 +1,18 @@
-"""Results on disk: XDMF (ParaView) of the deformed face, point evaluation, atomic folders.
-
-A result folder is built under a temporary name and renamed into place only when complete, so an
-interrupted run never leaves a folder that looks like a result.
+"""Results on disk: XDMF (ParaView) of the deformed face, point evaluation.
 
 Fields that must not depend on how the mesh was distributed (a fit's per-frame displacement and
 its resume checkpoint) are stored in the mesh file's node order (``FileNodeOrder``); ``XdmfSeries``
 writes a ParaView time series from such arrays on one process, with the mesh as the file gives it.
 """
-from contextlib import contextmanager
-import os
 import pathlib
-import shutil
-import tempfile
 
 from mpi4py import MPI
 import h5py
 import numpy as np
 from dolfinx import fem, io
 
+from face_dolfinx.files import AtomicFile, atomic_write
 from face_dolfinx.physics.points import PointEvaluator
-
-
-@contextmanager
-def atomic_directory(path, comm=MPI.COMM_WORLD, overwrite: bool = False):
-    """Yield a temporary folder (same on every rank) that becomes ``path`` on success."""
-    path = pathlib.Path(path)
-    error = None
-    if comm.rank == 0:
-        if path.exists() and not overwrite:
-            error = f"{path} already exists; pass --overwrite to replace it"
-        else:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            staging = pathlib.Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
-    error = comm.bcast(error, root=0)
-    if error:
-        raise FileExistsError(error)
-    staging = comm.bcast(staging if comm.rank == 0 else None, root=0)
-    try:
-        yield staging
-        comm.barrier()
-        if comm.rank == 0:
-            if path.exists():
-                shutil.rmtree(path)
-            staging.rename(path)
-    except BaseException:
-        if comm.rank == 0:
-            shutil.rmtree(staging, ignore_errors=True)
-        raise
-    finally:
-        comm.barrier()
 
 
 def displacement_at(u: fem.Function, points: np.ndarray) -> np.ndarray:
@@ -154,8 +118,8 @@ class XdmfSeries:
     def __init__(self, path, points: np.ndarray, cells: np.ndarray):
         self.path = pathlib.Path(path)
         self.heavy = self.path.with_suffix(".h5")
-        self._staging = self.heavy.with_name(f".{self.heavy.name}.tmp")
-        self._h5 = h5py.File(self._staging, "w")
+        self._staged_heavy = AtomicFile(self.heavy)
+        self._h5 = h5py.File(self._staged_heavy.temporary, "w")
         self._write("mesh/geometry", np.asarray(points, dtype=float))
         self._write("mesh/topology", np.asarray(cells, dtype=np.int64))
         self._num_points, self._num_cells = len(points), len(cells)
@@ -191,7 +155,7 @@ class XdmfSeries:
 
     def close(self) -> None:
         self._h5.close()
-        os.replace(self._staging, self.heavy)
+        self._staged_heavy.commit()
         text = f"""<?xml version="1.0"?>
 <!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>
 <Xdmf Version="3.0" xmlns:xi="http://www.w3.org/2001/XInclude">
@@ -210,13 +174,11 @@ class XdmfSeries:
   </Domain>
 </Xdmf>
 """
-        staging = self.path.with_name(f".{self.path.name}.tmp")
-        staging.write_text(text)
-        os.replace(staging, self.path)
+        atomic_write(self.path, text)
 
     def abort(self) -> None:
         self._h5.close()
-        self._staging.unlink(missing_ok=True)
+        self._staged_heavy.discard()
 
     def __enter__(self):
         return self

@@ -20,27 +20,24 @@ The subject is first moved rigidly (no scaling: the subject keeps its size) onto
 landmarks, so the new model is in the template's frame: Y up, the same origin and facing. The
 result is refused (SubjectError) if the warp inverts or flattens any tetrahedron.
 
-Everything works on plain arrays (``ModelArrays``); reading and writing model folders is at the
-end of this module.
+Everything works on plain arrays (``face_dolfinx.model.folder.ModelArrays``, read by
+``read_model_arrays``); ``write_adapted_model`` writes the result.
 """
 from __future__ import annotations
 
 import csv
 import json
-import os
-import shutil
-import tempfile
 import tomllib
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-import h5py
 import numpy as np
 from mpi4py import MPI
 
+from face_dolfinx.files import atomic_directory
 from face_dolfinx.model import folder as model_format
 from face_dolfinx.alignment.similarity import AlignmentError, Similarity, align_by_correspondences, read_pair_file, similarity_transform
-from face_dolfinx.model.folder import JawGeometry, Muscle
+from face_dolfinx.model.folder import JawGeometry, ModelArrays
 from face_dolfinx.alignment.surface import SkinSurface
 from .warp import RBFWarp, fiber_transform, inverted_tets
 
@@ -62,34 +59,6 @@ MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 
 class SubjectError(ValueError):
     """Subject inputs that can't be used, or a warp that would break the mesh; the message says which."""
-
-
-@dataclass
-class ModelArrays:
-    """A model folder as plain arrays, in the terms of ``model.write_model`` (muscle cells are file cells)."""
-
-    name: str
-    points: np.ndarray          # (n, 3) mm
-    cells: np.ndarray           # (m, 4) positively oriented tets
-    facets: np.ndarray          # (k, 3) node triples
-    facet_values: np.ndarray    # (k,) tag values
-    boundary_ids: dict[str, int]
-    muscles: list[Muscle]
-    jaw: JawGeometry
-    markers: dict[str, np.ndarray]
-    landmarks: dict[str, np.ndarray]
-    material: dict[str, float]
-    expressions: dict[str, dict]
-    info: dict = field(default_factory=dict)
-
-    def skin(self, points=None) -> SkinSurface:
-        """The skin facets over ``points`` (default: the model's own nodes)."""
-        triangles = self.facets[self.facet_values == self.boundary_ids["skin"]]
-        return SkinSurface(self.points if points is None else points, triangles)
-
-    @property
-    def skin_nodes(self) -> np.ndarray:
-        return np.unique(self.facets[self.facet_values == self.boundary_ids["skin"]])
 
 
 @dataclass
@@ -345,48 +314,14 @@ def _similarity_json(transform: Similarity) -> dict:
 # ---------------------------------------------------------------------------------------------
 # Files
 # ---------------------------------------------------------------------------------------------
-def read_model_arrays(folder) -> ModelArrays:
-    """A model folder as arrays; it is loaded (and so checked) first, serially. The metadata and
-    muscle readers are the loader's own, so both read the format alike."""
-    folder = Path(folder)
-    model_format.load_model(folder, MPI.COMM_SELF)
-    meta = model_format._read_metadata(folder / model_format.MODEL_FILE)
-    muscle_data = model_format._read_muscles(folder / model_format.MUSCLES_FILE, meta["muscles"])
-    with h5py.File(folder / model_format.HEAVY_FILE, "r") as h5:
-        mesh = f"Mesh/{model_format.MESH_NAME}"
-        tags = f"MeshTags/{model_format.TAGS_NAME}"
-        points, cells = h5[f"{mesh}/geometry"][...], h5[f"{mesh}/topology"][...]
-        facets, values = h5[f"{tags}/topology"][...], h5[f"{tags}/Values"][...].reshape(-1)
-    muscles = [Muscle(entry["name"], entry["kind"], entry["peak_stress"], cells_, fraction, fiber, entry["geometry"])
-               for entry, (cells_, fraction, fiber) in zip(meta["muscles"], muscle_data)]
-    return ModelArrays(meta["name"], points, cells.astype(np.int64), facets.astype(np.int64), values,
-                       meta["boundaries"], muscles, meta["jaw"], meta["markers"], meta["landmarks"],
-                       meta["material"], meta["expressions"])
-
-
 def write_adapted_model(adaptation: Adaptation, out, *, info: dict, overwrite: bool = False) -> Path:
     """Write the adapted model folder plus subject.json; staged and checked by loading, then renamed
     into place, so a failure never leaves a folder that looks like a model."""
-    out = Path(out)
-    if out.exists() and not overwrite:
-        raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
-    try:
-        m = adaptation.model
-        model_format.write_model(staging, name=m.name, points=m.points, cells=m.cells, facets=m.facets,
-                                 facet_values=m.facet_values, boundary_ids=m.boundary_ids, muscles=m.muscles,
-                                 jaw=m.jaw, markers=m.markers, landmarks=m.landmarks, material=m.material,
-                                 expressions=m.expressions, info=info)
+    with atomic_directory(out, MPI.COMM_SELF, overwrite=overwrite) as staging:
+        replace(adaptation.model, info=info).write(staging)
         (staging / "subject.json").write_text(json.dumps(dict(info, **adaptation.record), indent=2))
         model_format.load_model(staging, MPI.COMM_SELF)
-        staging.chmod(0o755)  # mkdtemp makes it private
-        if out.exists():
-            shutil.rmtree(out)
-        os.rename(staging, out)
-        return out
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    return Path(out)
 
 
 @dataclass(frozen=True, eq=False)

@@ -21,9 +21,10 @@ from face_dolfinx.capture import Capture, chunk_ranges
 from face_dolfinx.capture.synthetic import load_truth
 from face_dolfinx.fitting import FaceFitter, FrameResult, MarkerSet
 from face_dolfinx.model.folder import load_model
-from face_dolfinx.parallel import root_first
+from face_dolfinx.parallel import on_rank_0
 from face_dolfinx.physics.problem import FaceProblem
-from face_dolfinx.results.folder import FitFolder, atomic_write_text
+from face_dolfinx.files import atomic_write
+from face_dolfinx.results.folder import FitFolder
 from face_dolfinx.results.report import write_report
 from face_dolfinx.results.xdmf import FileNodeOrder
 from .settings import PRESETS, TrackingSettings
@@ -104,9 +105,9 @@ class Tracker:
         def prepare():
             folder, finished = FitFolder.prepare(out, settings, take, truth_file, overwrite=overwrite)
             if not finished:
-                atomic_write_text(folder.path / "alignment.json", alignment)
+                atomic_write(folder.path / "alignment.json", alignment)
             return folder.path
-        return FitFolder(root_first(prepare, self.comm))
+        return FitFolder(on_rank_0(prepare, self.comm))
 
     def run(self, folder: FitFolder, capture: Capture, placement, *, chunk: int | None = None,
             stop_after: int | None = None, on_frame=None, progress: bool = True) -> TrackingRun:
@@ -127,7 +128,7 @@ class Tracker:
             chunks = [chunks[chunk]]
         aligned = placement.aligned(capture)
         truth = load_truth(folder.truth_file) if folder.truth_file else None
-        done = set(range(capture.n_frames)) - set(root_first(folder.missing_frames, self.comm))
+        done = set(range(capture.n_frames)) - set(on_rank_0(folder.missing_frames, self.comm))
         problem = self.problem
         node_order = FileNodeOrder(problem.V)
         markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
@@ -179,9 +180,9 @@ class Tracker:
                 track(fitter, aligned.positions, range(start, stop),
                       on_frame=functools.partial(save, fitter=fitter, first=frames.start))
         self.comm.barrier()
-        missing = root_first(folder.missing_frames, self.comm)
+        missing = on_rank_0(folder.missing_frames, self.comm)
         if not missing:
-            root_first(lambda: finish(folder), self.comm)
+            on_rank_0(lambda: finish(folder), self.comm)
         return TrackingRun(folder, results, missing)
 
     def track(self, capture: Capture, placement, out, *, chunks: int = 1, chunk: int | None = None,

@@ -18,15 +18,13 @@ killed build never leaves a folder that looks complete.
 """
 import hashlib
 import logging
-import os
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
 
+from face_dolfinx.files import atomic_directory
 from face_dolfinx.model import folder as model_format
 from .attachments import BOUNDARY_IDS, facet_tags
 from .description import Description, DescriptionError, load_description
@@ -79,22 +77,17 @@ def _cached_build(target_tets: int, cache: Path) -> Path:
     folder = cache / cache_key(description, target_tets)
     if folder.is_dir():
         return folder
-    cache.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}-", dir=cache))
-    staging.chmod(0o755)  # mkdtemp makes it private; the cache is shared
     try:
-        info = generate(description, target_tets, staging)
-        model_format.load_model(staging, MPI.COMM_SELF)  # never cache a model that does not load
-        try:
-            os.rename(staging, folder)
-        except OSError:
-            if not folder.is_dir():  # not a concurrent build that finished first
-                raise
-        log.info("built-in face: %d tets (target %d), %d layers, generated in %.1f s -> %s",
-                 info["tets"], target_tets, info["layers"], info["generation_seconds"], folder)
+        with atomic_directory(folder, MPI.COMM_SELF) as staging:
+            info = generate(description, target_tets, staging)
+            model_format.load_model(staging, MPI.COMM_SELF)  # never cache a model that does not load
+    except FileExistsError:
+        if not folder.is_dir():  # not a concurrent build that finished first
+            raise
         return folder
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    log.info("built-in face: %d tets (target %d), %d layers, generated in %.1f s -> %s",
+             info["tets"], target_tets, info["layers"], info["generation_seconds"], folder)
+    return folder
 
 
 def generate(description: Description, target_tets: int, folder: Path) -> dict:
