@@ -204,3 +204,53 @@ def test_warm_frame_activation_steps_stay_in_the_trust_region(take):
         assert np.abs(step[:3]).max() <= trust_radius + 1e-12
     assert np.abs(steps[0][1][:3]).max() == pytest.approx(radius)  # the far target pulls to the edge
     assert max(trust_radius for trust_radius, _ in steps) > radius  # ... and the region grew
+
+
+@pytest.mark.parametrize("mode", ["exact", "paper"])
+def test_a_marker_of_weight_zero_is_followed_but_not_fitted(take, mode):
+    """A weight-0 marker (a validation marker) leaves the fit as a gap would, whatever its target,
+    and its error is still reported: here the 10 mm it was moved by."""
+    model, sites, targets = take
+    moved, gap = targets.copy(), targets.copy()
+    moved[3] += [0.0, 0.0, 10.0]
+    gap[3] = np.nan
+    weights = np.ones(len(sites))
+    weights[3] = 0.0
+    results = []
+    for frame_targets, marker_weights in ((moved, weights), (gap, None)):
+        problem = FaceProblem(model)
+        fitter = FaceFitter(problem, MarkerSet(problem, sites, weights=marker_weights), FitSettings(mode=mode))
+        results.append(fitter.fit_frame(frame_targets))
+    weighted, with_gap = results
+    assert np.array_equal(weighted.activations, with_gap.activations)
+    assert weighted.rms_error == pytest.approx(with_gap.rms_error, rel=1e-12)
+    assert np.isnan(with_gap.marker_errors[3]) and abs(weighted.marker_errors[3] - 10.0) < 0.5
+
+
+def test_weights_scale_the_objective(take):
+    """Doubling every weight doubles the objective the fit minimises, so the fit is the same; a
+    weight on one marker pulls the fit towards that marker's (moved) target."""
+    model, sites, targets = take
+    moved = targets.copy()
+    moved[5] += [0.0, 0.0, 2.0]
+    errors = []
+    for weights in (np.ones(len(sites)), 2 * np.ones(len(sites)), np.where(np.arange(len(sites)) == 5, 20.0, 1.0)):
+        problem = FaceProblem(model)
+        fitter = FaceFitter(problem, MarkerSet(problem, sites, weights=weights), FitSettings())
+        result = fitter.fit_frame(moved)
+        errors.append((result.activations, result.marker_errors[5]))
+    assert np.abs(errors[0][0] - errors[1][0]).max() < 1e-6
+    assert errors[2][1] < 0.8 * errors[0][1]
+
+
+def test_effort_term_lowers_the_activations(take):
+    """sum a_i^2 weighted into the objective: the larger its weight, the smaller the fitted
+    activations, at the price of the marker error."""
+    model, sites, targets = take
+    norms, rms = [], []
+    for effort in (0.0, 10.0, 100.0):
+        _, result = fit(model, sites, targets, effort=effort, first_frame_gn_steps=10)
+        norms.append(np.linalg.norm(result.activations))
+        rms.append(result.rms_error)
+    assert norms[0] > norms[1] > norms[2]
+    assert rms[0] < rms[1] < rms[2]

@@ -1,16 +1,19 @@
 """Tracking settings and presets: one table between the fit command, the run record and the library."""
+import csv
 import dataclasses
+import json
 
 from mpi4py import MPI
+import numpy as np
 import pytest
 
-from face_dolfinx.cli.main import parse_arguments, tracking_settings
+from face_dolfinx.cli.main import main, parse_arguments, tracking_settings
 from face_dolfinx.fitting import FitSettings
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.tracking import PRESETS, RECORD_FIELDS, SettingError, Tracker, TrackingSettings
 
 # A value other than the default for every setting, as the command line gives it and as it is kept.
-OTHER_VALUES = dict(mode=("paper", "paper"), gn_steps=("5", 5), smoothness=("0.5", 0.5),
+OTHER_VALUES = dict(mode=("paper", "paper"), gn_steps=("5", 5), smoothness=("0.5", 0.5), effort=("2", 2.0),
                     fresh_jacobians=("2", 2), approximate_jacobians=("0.1", 0.1),
                     reuse_factorization=(None, True), newton_tolerance=("1e-3", 1e-3),
                     refresh_contraction=("0.3", 0.3), line_search_iterations=("2", 2))
@@ -76,3 +79,48 @@ def test_rank_groups_beyond_the_ranks_are_refused(model):
         Tracker(model, rank_groups=0)
     with pytest.raises(ValueError, match="the number of ranks"):
         Tracker(model, rank_groups=model.mesh.comm.size + 1)
+
+
+def test_part_of_a_take_with_validation_markers(builtin_model_path, shared_dir):
+    """fit --frames START:STOP:STEP fits those frames of the take (numbered as in the take), and
+    --validation-markers N leaves N markers out of the fit, measured in frames.csv and accuracy.json."""
+    model = ["--model", str(builtin_model_path)]
+    take = shared_dir / "part" / "take.trc"
+    assert main(["synth", *model, "--frames", "8", "--noise", "0.3", "--out", str(take)]) == 0
+    out = shared_dir / "part" / "fit"
+    assert main(["fit", str(take), *model, "--out", str(out), "--frames", "1:8:3", "--validation-markers", "3"]) == 0
+    with open(out / "frames.csv") as table:
+        rows = list(csv.DictReader(table))
+    assert [int(row["take_frame"]) for row in rows] == [1, 4, 7]
+    record = json.loads((out / "accuracy.json").read_text())
+    assert record["roles"]["validation"]["markers"] == 3
+    validation = [name for name, marker in record["markers"].items() if marker["role"] == "validation"]
+    # Over the take the markers move far beyond the 0.3 mm noise (4-5 mm RMS beyond the head's
+    # motion); the fit follows them, the left-out ones included, to about the noise.
+    for role in ("fitted", "validation"):
+        pooled = record["roles"][role]
+        assert pooled["non_rigid_mm"] > 2.0 and pooled["rms_mm"] < 0.5 and pooled["explained"] > 0.95
+    for row in rows:
+        assert float(row["validation_rms_mm"]) < 0.5
+    errors = np.genfromtxt(out / "marker_errors.csv", delimiter=",", names=True)
+    assert all(np.all(np.isfinite(errors[name])) for name in validation)  # followed, reported
+    run = json.loads((out / "run.json").read_text())
+    assert run["marker_setup"]["validation"] == 3 and run["take_frame_selection"] == "1:8:3"
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--validation-markers", "forehead_1,nowhere"], "validation names marker 'nowhere'"),
+    (["--frames", "9:12"], "--frames 9:12: no frame of the 8-frame take"),
+    (["--frames", "2"], "--frames 2: give START:STOP or START:STOP:STEP"),
+    (["--frames", "0:8:0"], "the step must be 1 or more"),
+    (["--effort", "-1"], "--effort -1.0: give a weight, 0 or more"),
+])
+def test_bad_part_and_marker_options_leave_nothing(builtin_model_path, shared_dir, options, message):
+    model = ["--model", str(builtin_model_path)]
+    take = shared_dir / "bad" / "take.trc"
+    if not take.exists():
+        assert main(["synth", *model, "--frames", "8", "--out", str(take), "--overwrite"]) == 0
+    out = shared_dir / "bad" / "never"
+    with pytest.raises(SystemExit, match=message):
+        main(["fit", str(take), *model, "--out", str(out), *options])
+    assert not out.exists()

@@ -28,6 +28,12 @@ class TakeTruth:
     head: list                # per frame AffineMap of the cranium
     clean_positions: np.ndarray  # (frames, markers, 3) before noise, outliers and gaps
 
+    def select(self, frames) -> "TakeTruth":
+        """The truth of some frames only (indices into this take's frames)."""
+        frames = np.asarray(frames, dtype=int)
+        return TakeTruth(self.activations[frames], self.tmj[frames], [self.head[f] for f in frames],
+                         self.clean_positions[frames])
+
 
 def _smooth_pulse(t: np.ndarray, start: float, peak: float, end: float) -> np.ndarray:
     """0 before ``start``, rising smoothly to 1 at ``peak``, back to 0 at ``end``."""

@@ -257,8 +257,11 @@ def fit(model, args) -> None:
     capture = read_capture(capture_path, units=args.units, up_axis=args.up_axis,
                            check_scale=not args.no_scale_check)
     placement = place_on_model(model, capture, args.neutral_frame, args.correspondence)
+    take_frames = np.arange(capture.n_frames)[_frame_slice(args.frames, capture.n_frames)]
+    capture = capture.select(take_frames)
     truth_file = pathlib.Path(args.truth) if args.truth else truth_path(capture_path)
     settings = tracking_settings(args)
+    setup = _marker_setup(args)
     chunks = len(chunk_ranges(capture.n_frames, args.chunks))
     if args.chunk is not None and not 0 <= args.chunk < chunks:
         raise SystemExit(f"--chunk {args.chunk}: the take has chunks 0..{chunks - 1}")
@@ -266,8 +269,9 @@ def fit(model, args) -> None:
     correspondence = str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None
     try:
         folder = tracker.open_folder(args.out, capture, placement, chunks=args.chunks, overwrite=args.overwrite,
-                                     truth_file=truth_file if truth_file.exists() else None,
-                                     extra=dict(correspondence=correspondence))
+                                     truth_file=truth_file if truth_file.exists() else None, setup=setup,
+                                     take_frames=take_frames,
+                                     extra=dict(correspondence=correspondence, take_frame_selection=args.frames))
     except FitFolderError as error:
         raise SystemExit(str(error)) from None
     if folder.finished:
@@ -280,6 +284,39 @@ def fit(model, args) -> None:
         log.info("%d frames still to fit; rerun the same command to continue %s", len(run.missing), folder.path)
         return
     log.info("results: %s (plots: *.png and renders/; ParaView: face.xdmf)", folder.path.resolve())
+
+
+def _frame_slice(text: str | None, n_frames: int) -> slice:
+    """``--frames START:STOP[:STEP]`` (Python slice syntax, STOP excluded; parts may be left out)."""
+    if text is None:
+        return slice(None)
+    parts = text.split(":")
+    try:
+        if not 2 <= len(parts) <= 3:
+            raise ValueError
+        frames = slice(*(int(part) if part.strip() else None for part in parts))
+    except ValueError:
+        raise SystemExit(f"--frames {text}: give START:STOP or START:STOP:STEP (frame numbers, STOP excluded)") \
+            from None
+    if frames.step is not None and frames.step < 1:
+        raise SystemExit(f"--frames {text}: the step must be 1 or more")
+    if not len(range(n_frames)[frames]):
+        raise SystemExit(f"--frames {text}: no frame of the {n_frames}-frame take")
+    return frames
+
+
+def _marker_setup(args):
+    """The fit's marker setup: the --marker-setup file, with --validation-markers (names or a count)
+    in place of the file's; None when neither is given."""
+    from face_dolfinx.tracking import MarkerSetup
+    if args.marker_setup is None and args.validation_markers is None:
+        return None
+    setup = MarkerSetup.read(args.marker_setup) if args.marker_setup else MarkerSetup()
+    if args.validation_markers is not None:
+        text = args.validation_markers.strip()
+        setup = setup.with_validation(int(text) if text.isdigit() else
+                                      tuple(name.strip() for name in text.split(",") if name.strip()))
+    return setup
 
 
 def demo(args) -> int:
@@ -322,9 +359,10 @@ def main(argv=None) -> int:
     from .config import ConfigError
     from face_dolfinx.model.folder import ModelError
     from face_dolfinx.subjects.adaptation import SubjectError
+    from face_dolfinx.tracking import MarkerSetupError
     try:
         return _main(argv)
-    except (AlignmentError, CaptureError, ConfigError, ModelError, SubjectError) as error:
+    except (AlignmentError, CaptureError, ConfigError, MarkerSetupError, ModelError, SubjectError) as error:
         raise SystemExit(f"face-dolfinx: error: {error}") from None
 
 
@@ -425,6 +463,17 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--gn-steps", type=int, help=f"Gauss-Newton steps per frame (default {default.fit.max_gn_steps})")
     p.add_argument("--smoothness", type=float,
                    help="temporal smoothness weight on activations (default 0: off)")
+    p.add_argument("--effort", type=float,
+                   help="weight of the effort term, the sum of squared activations (mm^2; default 0: off)")
+    p.add_argument("--validation-markers", metavar="A,B,...|N",
+                   help="markers left out of the fit to measure prediction (embedded at the neutral frame, "
+                        "followed, reported in frames.csv and accuracy.json): names, or a count picked "
+                        "spread over the face")
+    p.add_argument("--marker-setup", metavar="FILE",
+                   help="TOML file of marker groups, weights (0: not fitted) and validation markers "
+                        "(docs/cli.md)")
+    p.add_argument("--frames", metavar="START:STOP[:STEP]",
+                   help="fit part of the take, or every STEP-th frame (frame numbers of the take, STOP excluded)")
     p.add_argument("--truth", help="truth .npz of a synthetic take (default: next to the capture)")
     p.add_argument("--reuse-factorization", action="store_true", default=None,
                    help="modified Newton: keep the last MUMPS factor across Newton iterations and "

@@ -48,6 +48,7 @@ class FaceFitter:
         self.previous_activations = None
         self.frames_done = 0
         self._cached_jacobian = None  # (state, dof columns, marker columns) of the last GN step
+        self._root_weights = np.sqrt(markers.weights)
 
     # -- controls <-> problem -----------------------------------------------------------------
     def _equilibrium(self, state: ControlState, guess: np.ndarray | None, trial: bool = False) -> None:
@@ -58,12 +59,15 @@ class FaceFitter:
                            max_halvings=self.settings.trial_halvings if trial else 10)
 
     def _objective(self, state: ControlState, targets, present) -> tuple[float, np.ndarray]:
+        """sum w_i |x_i - target_i|^2 over the fitted markers, plus the regularisation terms."""
         simulated = self.markers.positions(self.problem.u.x.array, state.cranium)
-        residual = (simulated - targets)[present]
+        residual = (simulated - targets)[present] * self._root_weights[present, None]
         value = float(np.sum(residual**2))
         if self.settings.temporal_smoothness and self.previous_activations is not None:
             value += self.settings.temporal_smoothness * float(
                 np.sum((state.activations - self.previous_activations) ** 2))
+        if self.settings.effort:
+            value += self.settings.effort * float(np.sum(state.activations**2))
         value += self.formulation.penalty(state)
         return value, simulated
 
@@ -120,16 +124,18 @@ class FaceFitter:
     # -- steps --------------------------------------------------------------------------------
     def _gn_step(self, state: ControlState, jacobian: np.ndarray, residual: np.ndarray) -> np.ndarray:
         """The control step of the formulation on the linearised objective |r + J dc|^2 (with the
-        temporal smoothness rows)."""
+        rows of the temporal smoothness and effort terms)."""
         n = self.problem.num_muscles
         A = jacobian.reshape(len(jacobian), -1).T  # (3 markers, controls)
         b = -residual.reshape(-1)
-        w = self.settings.temporal_smoothness
-        if w and self.previous_activations is not None:
-            rows = np.zeros((n, A.shape[1]))
-            rows[:, :n] = math.sqrt(w) * np.eye(n)
-            A = np.vstack([A, rows])
-            b = np.concatenate([b, -math.sqrt(w) * (state.activations - self.previous_activations)])
+        terms = [(self.settings.temporal_smoothness, self.previous_activations),
+                 (self.settings.effort, np.zeros(n))]
+        for weight, reference in terms:
+            if weight and reference is not None:
+                rows = np.zeros((n, A.shape[1]))
+                rows[:, :n] = math.sqrt(weight) * np.eye(n)
+                A = np.vstack([A, rows])
+                b = np.concatenate([b, -math.sqrt(weight) * (state.activations - reference)])
         return self.formulation.step(state, A, b)
 
     # -- one frame ----------------------------------------------------------------------------
@@ -138,13 +144,14 @@ class FaceFitter:
         start = time.perf_counter()
         settings = self.settings
         targets = np.asarray(targets, dtype=float)
-        present = np.all(np.isfinite(targets), axis=1)
+        seen = np.all(np.isfinite(targets), axis=1)
+        present = seen & (self.markers.weights > 0)  # the markers fitted in this frame
         if max_steps is None:
             max_steps = settings.first_frame_gn_steps if self.frames_done == 0 else settings.max_gn_steps
         phases = dict(sensitivities=0.0, gn_solve=0.0, equilibrium=0.0, line_search=0.0)
         flag = self._frame_flag(present)
         if flag:
-            return self._result(frame, targets, present, 0, start, phases, flag)
+            return self._result(frame, targets, seen, present, 0, start, phases, flag)
 
         state = self.state
         formulation = self.formulation
@@ -172,8 +179,9 @@ class FaceFitter:
             phases["sensitivities"] += seconds
             t0 = time.perf_counter()
             simulated = self.markers.positions(base_u, state.cranium)
-            residual = np.where(present[:, None], simulated - np.nan_to_num(targets), 0.0)
-            jac = marker_columns * present[None, :, None]
+            weight = np.where(present, self._root_weights, 0.0)
+            residual = (simulated - np.nan_to_num(targets)) * weight[:, None]
+            jac = marker_columns * weight[None, :, None]
             step = self._gn_step(state, jac, residual)
             phases["gn_solve"] += time.perf_counter() - t0
             if formulation.step_changes_objective:
@@ -217,7 +225,7 @@ class FaceFitter:
         self.state = state
         self.previous_activations = state.activations.copy()
         self.frames_done += 1
-        result = self._result(frame, targets, present, steps, start, phases, "")
+        result = self._result(frame, targets, seen, present, steps, start, phases, "")
         result.initial_rms = initial_rms
         if result.rms_error > settings.unreachable_rms:
             result.flag = (f"targets not reachable: marker RMS {result.rms_error:.2f} mm after "
@@ -295,12 +303,13 @@ class FaceFitter:
             return f"only {usable} marker(s) present: fewer than the 3 a rigid head motion needs"
         return ""
 
-    def _result(self, frame, targets, present, steps, start, phases, flag) -> FrameResult:
+    def _result(self, frame, targets, seen, present, steps, start, phases, flag) -> FrameResult:
+        """The frame's result: errors of every marker seen, RMS and largest over the fitted ones."""
         state = self.state
         simulated = self.markers.positions(self.problem.u.x.array, state.cranium)
-        errors = np.where(present, np.linalg.norm(simulated - np.nan_to_num(targets), axis=1), np.nan)
-        rms = float(np.sqrt(np.nanmean(errors**2))) if present.any() else math.nan
-        worst = float(np.nanmax(errors)) if present.any() else math.nan
+        errors = np.where(seen, np.linalg.norm(simulated - np.nan_to_num(targets), axis=1), np.nan)
+        rms = float(np.sqrt(np.mean(errors[present]**2))) if present.any() else math.nan
+        worst = float(np.max(errors[present])) if present.any() else math.nan
         return FrameResult(frame, state.activations.copy(), state.cranium, self.formulation.jaw(state),
                            None if state.tmj is None else state.tmj.copy(), errors, rms, worst, steps,
                            time.perf_counter() - start, phases, flag)

@@ -15,6 +15,7 @@ class FitSettings:
     line_search: bool = True            # False: pure Gauss-Newton, every full step taken (stability study)
     line_search_every_step: bool = False  # the paper's loop: golden section on every step, the full step one candidate
     temporal_smoothness: float = 0.0    # weight (mm^2 per unit activation^2) towards the last frame
+    effort: float = 0.0                 # weight (mm^2 per unit activation^2) of sum a_i^2 (static optimisation)
     fit_head: bool = True
     fit_jaw: bool = True
     unreachable_rms: float = 3.0        # mm: a frame fitted worse than this is flagged

@@ -3,7 +3,9 @@ exactly where it stopped.
 
 Layout of a fit folder:
   run.json          the settings of the run (a rerun must match them to resume)
-  take.json         what the frames are: muscle and marker names, frame times
+  take.json         what the frames are: muscle and marker names, frame times and the take's own
+                    frame numbers; each marker's role (fitted, validation, ignored) and group,
+                    and the neutral frame's markers in model coordinates
   truth.npz         the truth of a synthetic take, copied from beside the capture (if known)
   run.log           the log of every run that wrote here
   frames/000123.displacement.npy   the frame's equilibrium displacement at the mesh file's nodes
@@ -13,7 +15,9 @@ Layout of a fit folder:
   activations.csv   frame, time, one column per muscle            } written when every frame is
   kinematics.csv    head rotation (row-major), translation, jaw   } done, from the frame files;
   marker_errors.csv frame, one column per marker (mm, empty = gap) } the same bytes however many
-  frames.csv        per frame: RMS/max error, GN steps, flags      } ranks, chunks or resumes
+  frames.csv        per frame: RMS/max error, GN steps, flags;     } ranks, chunks or resumes
+                    per role: RMS error, non-rigid motion, the fraction of it explained
+  accuracy.json     the take's accuracy by role, group and marker, muscles pinned at 1 (results.accuracy)
   timings.csv       per frame: seconds, split by phase (these differ from run to run)
   face.xdmf, *.png, renders/   the report (face_dolfinx.results.report)
 While a run is unfinished the folder holds ``IN_PROGRESS``; it is removed last, with the
@@ -35,9 +39,10 @@ from face_dolfinx.fitting import ControlState, FitCheckpoint, FrameResult
 from face_dolfinx.physics.problem import Controls
 from face_dolfinx.capture.synthetic import load_truth
 from face_dolfinx.files import atomic_write
+from . import accuracy
 
 IN_PROGRESS = "IN_PROGRESS"
-RUN_FILE, TAKE_FILE, TRUTH_FILE = "run.json", "take.json", "truth.npz"
+RUN_FILE, TAKE_FILE, TRUTH_FILE, ACCURACY_FILE = "run.json", "take.json", "truth.npz", "accuracy.json"
 
 
 class FitFolderError(FileExistsError):
@@ -106,6 +111,14 @@ class FitFolder:
         take = json.loads((self.path / TAKE_FILE).read_text())
         self.muscle_names, self.marker_names = take["muscle_names"], take["marker_names"]
         self.times = np.array(take["times"], dtype=float)
+        # The take's own frame numbers (a fit of part of a take), each marker's role in the fit
+        # (accuracy.ROLES) and group, and the neutral frame's markers in model coordinates.
+        self.take_frames = np.array(take.get("take_frames", range(len(self.times))), dtype=int)
+        self.marker_weights = np.array(take.get("marker_weights", [1.0] * len(self.marker_names)), dtype=float)
+        self.marker_roles = take.get("marker_roles", ["fitted"] * len(self.marker_names))
+        self.marker_groups = take.get("marker_groups", [None] * len(self.marker_names))
+        neutral = take.get("neutral_markers")
+        self.neutral_markers = None if neutral is None else _from_nullable(neutral, 3)
 
     @classmethod
     def prepare(cls, path, settings: dict, take: dict, truth_file=None,
@@ -145,6 +158,10 @@ class FitFolder:
     @property
     def finished(self) -> bool:
         return not (self.path / IN_PROGRESS).exists()
+
+    def truth(self):
+        """The truth of the fitted frames (``TakeTruth``, indexed like them), None if unknown."""
+        return load_truth(self.truth_file).select(self.take_frames) if self.truth_file else None
 
     @property
     def truth_file(self) -> pathlib.Path | None:
@@ -231,7 +248,7 @@ class FitFolder:
     def write_tables(self) -> None:
         """The CSV tables from the frame files (with errors against the truth if known)."""
         results = [r for _, r in sorted(self.finished_frames().items())]
-        truth = load_truth(self.truth_file) if self.truth_file else None
+        truth = self.truth()
         times = self.times
         atomic_write(self.path / "activations.csv", _table(
             ["frame", "time_s"] + list(self.muscle_names),
@@ -246,8 +263,22 @@ class FitFolder:
               *(r.jaw_tmj if r.jaw_tmj is not None else [np.nan] * 3)] for r in results]))
         atomic_write(self.path / "marker_errors.csv", _table(
             ["frame"] + list(self.marker_names), [[r.frame, *r.marker_errors] for r in results]))
-        columns = ["frame", "rms_error_mm", "max_error_mm", "initial_rms_mm", "gn_steps"]
-        rows = [[r.frame, r.rms_error, r.max_error, r.initial_rms, r.gn_steps] for r in results]
+        columns = ["frame", "take_frame", "rms_error_mm", "max_error_mm", "initial_rms_mm", "gn_steps"]
+        rows = [[r.frame, self.take_frames[r.frame], r.rms_error, r.max_error, r.initial_rms, r.gn_steps]
+                for r in results]
+        measures = self.motion_measures(results)
+        if measures is not None:
+            for role in ("fitted", "validation"):
+                markers = np.array(self.marker_roles) == role
+                if markers.any():
+                    columns += [f"{role}_rms_mm", f"{role}_non_rigid_mm", f"{role}_explained"]
+                    per_frame = measures.per_frame(markers)
+                    for i, row in enumerate(rows):
+                        row += [per_frame["rms_mm"][i], per_frame["non_rigid_mm"][i], per_frame["explained"][i]]
+            record = accuracy.summary(measures, self.marker_names, self.marker_roles, self.marker_groups)
+            record["pinned_muscles"] = accuracy.pinned_stretches(
+                np.array([r.activations for r in results]), times[[r.frame for r in results]], self.muscle_names)
+            atomic_write(self.path / ACCURACY_FILE, json.dumps(record, indent=2))
         if truth is not None:
             columns += ["activation_error_max", "jaw_error_max"]
             for row, r in zip(rows, results):
@@ -261,6 +292,22 @@ class FitFolder:
         atomic_write(self.path / "timings.csv", _table(
             ["frame", "seconds"] + [f"{phase}_s" for phase in phases],
             [[r.frame, r.seconds, *(r.phases.get(phase, 0.0) for phase in phases)] for r in results]))
+
+    def motion_measures(self, results: list[FrameResult] | None = None) -> accuracy.MotionMeasures | None:
+        """Errors and non-rigid motion of every marker in the fitted frames (in frame order), None
+        for a folder that does not know its neutral markers."""
+        if self.neutral_markers is None:
+            return None
+        frames = [r.frame for r in results] if results is not None else sorted(self.finished_frames())
+        captured, simulated = zip(*(self.frame_markers(frame) for frame in frames)) if frames else ((), ())
+        shape = (len(frames), len(self.marker_names), 3)
+        return accuracy.MotionMeasures.of(self.neutral_markers, np.reshape(captured, shape),
+                                          np.reshape(simulated, shape))
+
+    def accuracy(self) -> dict | None:
+        """The accuracy record of a finished fit (``accuracy.summary``), None if it has none."""
+        file = self.path / ACCURACY_FILE
+        return json.loads(file.read_text()) if file.is_file() else None
 
     def mark_finished(self) -> None:
         """Drop the checkpoints (only a resume needs them), then the IN_PROGRESS mark."""

@@ -10,6 +10,9 @@ the result does not depend on how many ranks, chunks or resumes produced the fra
   marker_error.png  per-frame RMS and largest marker error; with a truth, the capture's own
                     noise (what a perfect fit would show) dashed and the error against the
                     clean markers dotted
+  accuracy.png      per frame, fitted and validation markers: RMS error against their non-rigid
+                    motion (what rigid head motion alone leaves), and the fraction explained
+                    (results.accuracy); for folders that know their neutral markers
   renders/frame_NNNNNN.png   a few frames: deformed skin, captured markers red, simulated green
   face.xdmf (+ face.h5)      per frame: displacement at the nodes and each muscle's
                              activation x volume fraction per cell, for ParaView
@@ -27,7 +30,6 @@ import numpy as np  # noqa: E402
 from .xdmf import XdmfSeries  # noqa: E402
 from .render import render_skin  # noqa: E402
 from .folder import FitFolder  # noqa: E402
-from face_dolfinx.capture.synthetic import load_truth  # noqa: E402
 from face_dolfinx.model.folder import ModelArrays, read_model_arrays  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -46,10 +48,13 @@ def write_report(path, rendered_frames: int = RENDERED_FRAMES) -> list[Path]:
                     folder.path, len(missing), len(folder.times), _ranges(missing))
     if not results:
         raise ValueError(f"{folder.path}: no finished frame to report on")
-    truth = load_truth(folder.truth_file) if folder.truth_file else None
+    truth = folder.truth()
     model = read_model_arrays(folder.settings["model"], check=False)
     written = [_plot_activations(folder, results, truth), _plot_kinematics(folder, results, truth),
                _plot_marker_error(folder, results, truth)]
+    measures = folder.motion_measures([results[frame] for frame in sorted(results)])
+    if measures is not None:
+        written.append(_plot_accuracy(folder, sorted(results), measures))
     written += _render_frames(folder, results, model, rendered_frames)
     written.append(_write_series(folder, results, model))
     log.info("report of %s: %s", folder.path, ", ".join(str(p.relative_to(folder.path)) for p in written))
@@ -153,6 +158,33 @@ def _plot_marker_error(folder: FitFolder, results: dict, truth) -> Path:
     axes.set_title("Marker error per frame")
     axes.legend(fontsize=7)
     return _save(figure, folder.path / "marker_error.png")
+
+
+def _plot_accuracy(folder: FitFolder, frames: list[int], measures) -> Path:
+    """Per frame, for the fitted and the validation markers: RMS error against RMS non-rigid
+    motion (what rigid head motion alone leaves), and the fraction of it the fit explains."""
+    t = folder.times[frames]
+    figure, axes = _figure(2)
+    roles = np.array(folder.marker_roles)
+    for colour, role in enumerate(("fitted", "validation")):
+        if not (roles == role).any():
+            continue
+        per_frame = measures.per_frame(roles == role)
+        count = int((roles == role).sum())
+        axes[0].plot(t, per_frame["non_rigid_mm"], color=f"C{colour}", linestyle="--",
+                     label=f"{role} ({count}): non-rigid motion")
+        axes[0].plot(t, per_frame["rms_mm"], color=f"C{colour}", label=f"{role}: fit error")
+        axes[1].plot(t, 100 * per_frame["explained"], color=f"C{colour}", label=role)
+    axes[0].set_ylabel("RMS (mm)")
+    axes[0].set_ylim(bottom=0.0)
+    axes[0].legend(fontsize=7)
+    axes[0].set_title("Markers' motion beyond the rigid head motion, and the fit's error")
+    axes[1].set_ylabel("explained (%)")
+    axes[1].set_ylim(-50, 105)
+    axes[1].axhline(0.0, color="grey", linewidth=0.5)
+    axes[1].legend(fontsize=7)
+    axes[1].set_xlabel("time (s)")
+    return _save(figure, folder.path / "accuracy.png")
 
 
 def _render_frames(folder: FitFolder, results: dict, model: ModelArrays, count: int) -> list[Path]:

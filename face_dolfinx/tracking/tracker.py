@@ -18,15 +18,16 @@ import pathlib
 import numpy as np
 
 from face_dolfinx.capture import Capture, chunk_ranges
-from face_dolfinx.capture.synthetic import load_truth
 from face_dolfinx.fitting import FaceFitter, FrameResult, MarkerSet
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.parallel import on_rank_0
 from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.files import atomic_write
+from face_dolfinx.results import accuracy
 from face_dolfinx.results.folder import FitFolder
 from face_dolfinx.results.report import write_report
 from face_dolfinx.results.xdmf import FileNodeOrder
+from .markers import MarkerSetup
 from .settings import PRESETS, TrackingSettings
 
 log = logging.getLogger(__name__)
@@ -93,13 +94,28 @@ class Tracker:
                     alignment=placement.method, neutral_frame=placement.neutral_frame, **(extra or {}))
 
     def open_folder(self, out, capture: Capture, placement, *, chunks: int = 1, truth_file=None,
-                    overwrite: bool = False, extra: dict | None = None) -> FitFolder:
+                    overwrite: bool = False, setup: MarkerSetup | None = None, take_frames=None,
+                    extra: dict | None = None) -> FitFolder:
         """The fit folder of this take at ``out``: new, or the unfinished one to resume, or the
         finished one (``folder.finished``); a folder with other settings raises ``FitFolderError``
-        unless ``overwrite``. Collective; rank 0 writes. ``extra`` adds entries to the record."""
-        settings = self.record(capture, placement, chunks=chunks, extra=extra)
+        unless ``overwrite``. Collective; rank 0 writes.
+
+        ``setup`` gives the markers' weights, groups and validation markers (default: every
+        marker fitted with weight 1); ``take_frames`` the take's own numbers of the capture's
+        frames when it is part of a longer take (``Capture.select``); ``extra`` adds entries to
+        the record.
+        """
+        neutral = placement.surface_points + placement.offsets  # model coordinates
+        weights, roles, groups = (setup or MarkerSetup()).resolve(list(capture.marker_names), neutral)
+        record = dict(extra or {})
+        if setup is not None:
+            record["marker_setup"] = setup.record()
+        settings = self.record(capture, placement, chunks=chunks, extra=record)
         take = dict(muscle_names=self.model.muscle_names, marker_names=list(capture.marker_names),
-                    times=[float(t) for t in capture.times])
+                    times=[float(t) for t in capture.times],
+                    take_frames=[int(f) for f in (range(capture.n_frames) if take_frames is None else take_frames)],
+                    marker_weights=weights.tolist(), marker_roles=roles, marker_groups=groups,
+                    neutral_markers=[[None if not np.isfinite(v) else float(v) for v in p] for p in neutral])
         alignment = json.dumps(placement.to_json(), indent=2)
 
         def prepare():
@@ -127,11 +143,12 @@ class Tracker:
                 raise ValueError(f"chunk {chunk}: the take has chunks 0..{len(chunks) - 1}")
             chunks = [chunks[chunk]]
         aligned = placement.aligned(capture)
-        truth = load_truth(folder.truth_file) if folder.truth_file else None
+        truth = folder.truth()
         done = set(range(capture.n_frames)) - set(on_rank_0(folder.missing_frames, self.comm))
         problem = self.problem
         node_order = FileNodeOrder(problem.V)
-        markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names)
+        markers = MarkerSet(problem, placement.surface_points, placement.offsets, names=capture.marker_names,
+                            weights=folder.marker_weights)
         starts = {c: min((f for f in c if f not in done), default=None) for c in chunks[self.group::self.rank_groups]}
         todo = sum(c.stop - start for c, start in starts.items() if start is not None)
         if stop_after is not None:
@@ -183,15 +200,19 @@ class Tracker:
         missing = on_rank_0(folder.missing_frames, self.comm)
         if not missing:
             on_rank_0(lambda: finish(folder), self.comm)
+            record = folder.accuracy()
+            if record is not None:
+                log.info("accuracy: %s", accuracy.summary_line(record))
         return TrackingRun(folder, results, missing)
 
     def track(self, capture: Capture, placement, out, *, chunks: int = 1, chunk: int | None = None,
-              truth_file=None, overwrite: bool = False, stop_after: int | None = None, on_frame=None,
-              progress: bool = True, extra: dict | None = None) -> TrackingRun:
+              truth_file=None, overwrite: bool = False, setup: MarkerSetup | None = None, take_frames=None,
+              stop_after: int | None = None, on_frame=None, progress: bool = True,
+              extra: dict | None = None) -> TrackingRun:
         """``open_folder`` then ``run``: the whole take into the fit folder ``out`` (resumed if it
         holds this take unfinished; nothing is fitted if it holds it finished)."""
         folder = self.open_folder(out, capture, placement, chunks=chunks, truth_file=truth_file,
-                                  overwrite=overwrite, extra=extra)
+                                  overwrite=overwrite, setup=setup, take_frames=take_frames, extra=extra)
         if folder.finished:
             return TrackingRun(folder)
         return self.run(folder, capture, placement, chunk=chunk, stop_after=stop_after, on_frame=on_frame,
