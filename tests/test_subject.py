@@ -64,7 +64,7 @@ def check_is_a_valid_model(folder, template):
         points, cells = h5["Mesh/flesh/geometry"][...], h5["Mesh/flesh/topology"][...]
     np.testing.assert_array_equal(cells, template.cells)
     assert inverted_tets(points, cells).size == 0
-    for cells_, fiber in fibers_of(folder, model).values():
+    for _, fiber in fibers_of(folder, model).values():
         np.testing.assert_allclose(np.linalg.norm(fiber, axis=1), 1.0, atol=1e-12)
     return model, points
 
@@ -92,7 +92,7 @@ def test_subject_from_a_capture(template, builtin_model_path, shared_dir):
     skin = SkinSurface(*model.skin_surface())
     markers = frame.apply(affine_subject(sites))
     assert skin.closest(markers)[3].max() < 1e-4
-    for name, (cells, fiber) in fibers_of(out, model).items():
+    for name, (_, fiber) in fibers_of(out, model).items():
         index = [m.name for m in template.muscles].index(name)
         stretched = template.muscles[index].fiber @ (truth.rotation @ STRETCH).T
         np.testing.assert_allclose(fiber, stretched / np.linalg.norm(stretched, axis=1)[:, None], atol=1e-6)
