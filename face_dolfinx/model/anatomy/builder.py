@@ -38,7 +38,7 @@ from .sites import place_on_skin, site_angles
 
 log = logging.getLogger(__name__)
 
-REPOSITORY = Path(__file__).resolve().parents[2]
+REPOSITORY = Path(__file__).resolve().parents[3]
 DESCRIPTION_FILE = REPOSITORY / "meshes" / "builtin_face.toml"
 DEFAULT_CACHE = REPOSITORY / "meshes" / "cache"
 MODEL_NAME = "builtin-face"
