@@ -16,11 +16,6 @@ from face_dolfinx.physics.points import PointEvaluator
 from face_dolfinx.physics.problem import FaceProblem
 
 
-@pytest.fixture(scope="module")
-def model(builtin_model_path):
-    return load_model(builtin_model_path, MPI.COMM_WORLD)
-
-
 def marker_displacements(problem, model):
     points = np.array(list(model.markers.values()))
     return PointEvaluator(problem.V, points).values(problem.u.x.array)

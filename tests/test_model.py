@@ -16,11 +16,6 @@ from face_dolfinx.model.folder import ModelError, _toml, load_model, tet_volumes
 
 
 @pytest.fixture(scope="module")
-def model(builtin_model_path):
-    return load_model(builtin_model_path, MPI.COMM_WORLD)
-
-
-@pytest.fixture(scope="module")
 def serial_model(builtin_model_path):
     return load_model(builtin_model_path, MPI.COMM_SELF)
 
