@@ -9,7 +9,7 @@ export OPENBLAS_NUM_THREADS := 1
 export OMP_NUM_THREADS := 1
 NP ?= 2
 
-.PHONY: install demo test test-serial test-mpi
+.PHONY: install demo lint test test-serial test-mpi
 
 install:
 	bash scripts/install.sh
@@ -18,7 +18,11 @@ install:
 demo: install
 	mpirun -n $(NP) $(PYTHON) run.py demo
 
-test: install test-serial test-mpi
+# Pyflakes and bugbear's likely bugs ([tool.ruff] in pyproject.toml): seconds, so it runs first.
+lint:
+	.venv/bin/ruff check .
+
+test: install lint test-serial test-mpi
 
 test-serial:
 	$(PYTHON) -m pytest tests -q

@@ -261,7 +261,9 @@ def run(args) -> None:
                 fitter = FaceFitter(problem, markers_on(problem), FitSettings(**settings))
                 setup = time.perf_counter() - began
 
-                def done(result, counted=[0]):
+                counted = [0]
+
+                def done(result):
                     results.append(result)
                     factorizations.append(problem.solver.factorizations - counted[0])
                     counted[0] = problem.solver.factorizations

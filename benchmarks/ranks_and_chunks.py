@@ -62,7 +62,9 @@ def frame_seconds(folder: pathlib.Path, chunks: int) -> tuple[float, float]:
     with open(folder / "timings.csv") as table:
         seconds = {int(r["frame"]): float(r["seconds"]) for r in csv.DictReader(table)}
     cold = {chunk.start for chunk in chunk_ranges(len(seconds), chunks)}
-    mean = lambda values: sum(values) / len(values) if values else float("nan")
+
+    def mean(values):
+        return sum(values) / len(values) if values else float("nan")
     return (mean([s for f, s in seconds.items() if f in cold]),
             mean([s for f, s in seconds.items() if f not in cold]))
 

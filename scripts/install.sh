@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Idempotent set-up on Debian bookworm (as root, or with sudo): the FEniCSx stack from Debian,
 # an optimised BLAS (PETSc and MUMPS fall back to the reference BLAS without it, 17x slower),
-# and a venv on /usr/bin/python3 that sees the Debian packages and holds face_dolfinx.
+# and a venv on /usr/bin/python3 that sees the Debian packages and holds face_dolfinx (with ruff,
+# the linter `make test` runs first).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -26,6 +27,6 @@ fi
 stamp=.venv/.face_dolfinx-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "[install] installing face_dolfinx into .venv"
-  .venv/bin/python -m pip install -q --disable-pip-version-check -e .
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev]"
   touch "$stamp"
 fi

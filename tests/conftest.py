@@ -16,6 +16,14 @@ def builtin_model_path():
 
 
 @pytest.fixture(scope="module")
+def model(builtin_model_path):
+    """The small built-in face, distributed over all ranks (one per test module: tests solve on
+    its mesh and may leave state in objects built on it)."""
+    from face_dolfinx.model.folder import load_model
+    return load_model(builtin_model_path, MPI.COMM_WORLD)
+
+
+@pytest.fixture(scope="module")
 def shared_dir(tmp_path_factory, request):
     """One temporary folder per test module for all ranks (each rank's tmp_path differs under
     mpirun)."""

@@ -15,7 +15,6 @@
 """
 from dataclasses import replace
 
-from mpi4py import MPI
 import numpy as np
 import pytest
 
@@ -24,16 +23,10 @@ from face_dolfinx.fitting.baselines import (ActuationBasis, LinearFitter, Linear
 from face_dolfinx.model.bones import jaw_pose, rigid_map, rotation
 from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
 from face_dolfinx.tracking import track
-from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.capture.synthetic import control_curves, synthesize_take, training_segments
 
 HEAD = rigid_map(rotation([0.3, 1.0, 0.2], 0.08), [0.0, -10.0, 40.0], [2.0, -1.0, 3.0])
-
-
-@pytest.fixture(scope="module")
-def model(builtin_model_path):
-    return load_model(builtin_model_path, MPI.COMM_WORLD)
 
 
 @pytest.fixture(scope="module")

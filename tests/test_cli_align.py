@@ -16,18 +16,12 @@ from scipy.spatial.transform import Rotation
 from face_dolfinx.alignment.similarity import Similarity
 from face_dolfinx.capture import Capture, write_capture
 from face_dolfinx.cli.main import main
-from face_dolfinx.model.folder import load_model
 from user_capture import user_sites, write_correspondence
 
 # The lab frame of the "user's" capture: turned, moved far from the model's origin, 10% larger.
 LAB = Similarity(1.1, Rotation.from_euler("xyz", [20.0, -35.0, 10.0], degrees=True).as_matrix(),
                  [400.0, -250.0, 900.0])
 NOISE = 0.2  # mm, RMS of the 3D error
-
-
-@pytest.fixture(scope="module")
-def model(builtin_model_path):
-    return load_model(builtin_model_path)
 
 
 def write_take(path, names, positions_model, rate=60.0):

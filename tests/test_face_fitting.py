@@ -2,7 +2,7 @@
 
 - Jacobian columns of the 79 markers against central differences of the nonlinear solve.
 - Noise-free speech-like take with head motion: activations within 0.02, markers within 0.05 mm.
-- 0.5 mm noise: marker RMS error <= 1.1 x noise on every frame.
+- 0.5 mm noise: test_fitting.py, on the slab and on this face.
 - A marker jumping 10 mm (sifakis2005 fig. 7): the fit follows it by less than 30 %, its five
   nearest neighbours end within 3 mm (30 % of the jump) and the other markers within 0.5 mm RMS.
   (Measured at 5K tets for the mouth corner, the hardest case as muscles can move it: outlier
@@ -19,17 +19,11 @@ import pytest
 from face_dolfinx.model.bones import jaw_pose
 from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
 from face_dolfinx.tracking import track
-from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity, bone_position_derivatives
 from face_dolfinx.capture.synthetic import synthesize_take
 
 FRAMES = 4
-
-
-@pytest.fixture(scope="module")
-def model(builtin_model_path):
-    return load_model(builtin_model_path, MPI.COMM_WORLD)
 
 
 @pytest.fixture(scope="module")
@@ -143,15 +137,6 @@ def test_frame_with_most_markers_missing_is_flagged_under_determined(model, site
     stored = frame_from_dict(json.loads(json.dumps(frame_to_dict(result))))
     assert stored.unobservable == result.unobservable and stored.flag == result.flag
     assert stored.observability == result.observability
-
-
-def test_noise_is_not_fitted(model, sites, clean_take):
-    capture, truth = clean_take
-    noise = 0.5
-    rng = np.random.default_rng(11)
-    noisy = truth.clean_positions + rng.normal(scale=noise / np.sqrt(3), size=truth.clean_positions.shape)
-    for result in fit_take(model, sites, noisy):
-        assert result.rms_error <= 1.1 * noise
 
 
 def test_outlier_does_not_distort_neighbours(model, sites, clean_take):

@@ -2,15 +2,17 @@
 
 Targets come from a forward solve at known controls (activations, TMJ, head motion); the fit
 starts from rest. Both formulations must recover the truth from noise-free data; with 0.5 mm
-Gaussian noise the marker RMS error must stay below 1.1 x the noise (the physically attainable
-shapes filter the noise out rather than fitting it).
+Gaussian noise the fit must stay with the truth rather than follow the noise (on the slab and on
+the small built-in face).
 """
 from mpi4py import MPI
 import numpy as np
 import pytest
 
 from face_dolfinx.model.bones import jaw_pose, rigid_map, rotation
+from face_dolfinx.capture.synthetic import synthesize_take
 from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
+from face_dolfinx.tracking import track
 from face_dolfinx.physics.problem import FaceProblem
 from slab import slab_model
 
@@ -65,19 +67,44 @@ def test_line_search_on_every_step_recovers_the_truth(take):
     assert np.abs(result.activations - A_TRUE).max() < 1e-4
 
 
-def test_noise_is_filtered_not_fitted(take):
-    model, sites, targets = take
-    rng = np.random.default_rng(7)
+@pytest.mark.parametrize("body", ["slab", "face"])
+def test_noise_is_filtered_not_fitted(body, request):
+    """0.5 mm of noise (RMS per marker) on the markers of known equilibria: the fit stays with the
+    truth, not the noise. A least-squares fit of k controls to 3m marker coordinates keeps about
+    sqrt(k / 3m) of the noise: slab, 12 controls and 32 markers, 0.35 (measured 0.26); the built-in
+    face over two frames of a speech take, 41 controls and 79 markers, 0.42 (measured 0.36 and
+    0.40; 0.42 and 0.46 on the take's next two frames). So the fitted markers are within
+    1.5 sqrt(k / 3m) of the captured markers' distance from the noise-free ones, and the marker
+    error is most of the noise (sqrt(1 - k / 3m) >= 0.91; a fit that followed the noise would
+    shrink it). (On the face the activations are not asserted: 79 noisy markers leave them
+    0.25-0.39 from the truth.)"""
     noise = 0.5
-    noisy = targets + rng.normal(scale=noise / np.sqrt(3), size=targets.shape)  # 0.5 mm RMS per marker
-    fitter, result = fit(model, sites, noisy, first_frame_gn_steps=10)
-    # Errors against the noisy data stay at the noise level, and against the truth well below it.
-    assert result.rms_error <= 1.1 * noise
-    truth_on_data = np.sqrt(np.mean(np.sum((noisy - targets) ** 2, axis=1)))
-    assert result.rms_error < truth_on_data  # least squares: never worse than the truth on the data
-    simulated = fitter.markers.positions(fitter.problem.u.x.array, result.cranium)
-    error_to_truth = np.sqrt(np.mean(np.sum((simulated - targets) ** 2, axis=1)))
-    assert error_to_truth < 0.5 * noise
+    if body == "slab":
+        model, sites, targets = request.getfixturevalue("take")
+        clean, settings = targets[None], dict(first_frame_gn_steps=10)
+    else:
+        model = request.getfixturevalue("model")
+        sites = np.array(list(model.markers.values()))
+        truth = FaceProblem(model)
+        clean = synthesize_take(truth, MarkerSet(truth, sites), model, "speech", n_frames=4, noise=0.0,
+                                seed=3, frames=range(2))[1].clean_positions
+        settings = {}
+    rng = np.random.default_rng(11)
+    noisy = clean + rng.normal(scale=noise / np.sqrt(3), size=clean.shape)
+    problem = FaceProblem(model)
+    markers = MarkerSet(problem, sites)
+    fitted = []
+    results = track(FaceFitter(problem, markers, FitSettings(**settings)), noisy,
+                    on_frame=lambda result: fitted.append(markers.positions(problem.u.x.array, result.cranium)))
+    kept = np.sqrt((problem.num_muscles + 6 + 3) / sites.size)  # activations, head, TMJ
+
+    def rms(difference):
+        return np.sqrt(np.mean(np.sum(difference**2, axis=-1)))
+
+    for result, simulated in zip(results, fitted):
+        captured_to_truth = rms(noisy[result.frame] - clean[result.frame])
+        assert rms(simulated - clean[result.frame]) < 1.5 * kept * captured_to_truth
+        assert 0.8 * captured_to_truth < result.rms_error <= 1.1 * noise
 
 
 def test_outlier_does_not_distort_neighbours(take):
@@ -147,7 +174,6 @@ def slab_take(model, n_frames=6):
 def test_tracking_warm_start_and_chunks():
     """Sequential tracking recovers every frame; two independent chunks give the same answers."""
     from face_dolfinx.capture import chunk_ranges
-    from face_dolfinx.tracking import track
     model = slab_model()
     sites, positions, activations = slab_take(model)
     settings = dict(first_frame_gn_steps=10, max_gn_steps=4, relative_decrease=1e-8)

@@ -17,11 +17,6 @@ from face_dolfinx.model.folder import (ModelError, _toml, load_model, read_model
 
 
 @pytest.fixture(scope="module")
-def model(builtin_model_path):
-    return load_model(builtin_model_path, MPI.COMM_WORLD)
-
-
-@pytest.fixture(scope="module")
 def serial_model(builtin_model_path):
     return load_model(builtin_model_path, MPI.COMM_SELF)
 

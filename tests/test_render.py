@@ -1,6 +1,5 @@
-"""Offscreen skin renders (face_dolfinx.results.render): a picture with a face in it, quickly."""
-import time
-
+"""Offscreen skin renders (face_dolfinx.results.render): a picture with a face in it. (Their speed
+is measured in benchmarks/, not asserted here.)"""
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
@@ -19,10 +18,8 @@ def skin(builtin_model_path):
 @pytest.mark.parametrize("view", ["front", "three_quarter", "side"])
 def test_render_writes_a_shaded_picture(skin, tmp_path, view):
     (points, triangles), markers, landmarks = skin
-    start = time.perf_counter()
     path = render_skin(points, triangles, tmp_path / f"{view}.png", markers=markers,
                        other_markers=landmarks, title=view, view=view)
-    assert time.perf_counter() - start < 10.0
     image = mpimg.imread(path)[:, :, :3]
     grey = image.mean(axis=2)
     covered = grey < 0.95                                  # not the white background

@@ -8,14 +8,8 @@ import pytest
 from mpi4py import MPI
 from dolfinx import fem
 
-from face_dolfinx.model.folder import load_model
 from face_dolfinx.results.xdmf import FileNodeOrder, XdmfSeries
 from face_dolfinx.results.report import _ranges
-
-
-@pytest.fixture(scope="module")
-def model(builtin_model_path):
-    return load_model(builtin_model_path, MPI.COMM_WORLD)
 
 
 def test_file_node_order_gathers_and_scatters_exactly(model, builtin_model_path):

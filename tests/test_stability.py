@@ -7,18 +7,11 @@ every cell above a tenth of its volume but stalls after 5 Newton iterations; the
 continuation) reaches the equilibrium in 3 load steps with every cell above 0.6 of its volume.
 Also under mpirun -n 2.
 """
-from mpi4py import MPI
 import numpy as np
 import pytest
 
-from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.equilibrium.solver import EquilibriumError
-
-
-@pytest.fixture(scope="module")
-def model(builtin_model_path):
-    return load_model(builtin_model_path, MPI.COMM_WORLD)
 
 
 def test_plain_newton_inverts_where_the_default_converges(model):

@@ -12,6 +12,7 @@ from face_dolfinx.alignment.similarity import Similarity
 from face_dolfinx.capture import Capture, write_capture
 from face_dolfinx.cli.main import main
 from face_dolfinx.model.folder import load_model, read_model_arrays
+from face_dolfinx.subjects.adaptation import SubjectError, adapt_to_markers
 from face_dolfinx.alignment.surface import SkinSurface
 from face_dolfinx.subjects.warp import inverted_tets
 from user_capture import user_sites, write_correspondence
@@ -63,9 +64,27 @@ def check_is_a_valid_model(folder, template):
         points, cells = h5["Mesh/flesh/geometry"][...], h5["Mesh/flesh/topology"][...]
     np.testing.assert_array_equal(cells, template.cells)
     assert inverted_tets(points, cells).size == 0
-    for cells_, fiber in fibers_of(folder, model).values():
+    for _, fiber in fibers_of(folder, model).values():
         np.testing.assert_allclose(np.linalg.norm(fiber, axis=1), 1.0, atol=1e-12)
     return model, points
+
+
+def test_the_template_own_markers_give_the_template_back(template):
+    """Markers at the template's own sites, seen in a lab frame: the rigid alignment removes the
+    frame and the warp has nothing left to do, so the adapted model is the template."""
+    names, sites, correspondence = user_sites(template)
+    adaptation = adapt_to_markers(template, LAB.apply(sites), names, correspondence, name="same")
+    np.testing.assert_allclose(adaptation.to_template.apply(LAB.apply(sites)), sites, atol=1e-9)
+    np.testing.assert_allclose(adaptation.model.points, template.points, atol=1e-6)
+    assert adaptation.max < 1e-6 and set(adaptation.distances) == set(names)
+    assert adaptation.model.name == "same" and np.array_equal(adaptation.model.cells, template.cells)
+
+
+def test_a_marker_missing_in_the_neutral_frame_is_named(template):
+    names, sites, correspondence = user_sites(template)
+    sites[3] = np.nan
+    with pytest.raises(SubjectError, match=f"markers missing in the neutral frame: {names[3]}; every marker"):
+        adapt_to_markers(template, sites, names, correspondence, name="gap")
 
 
 def test_subject_from_a_capture(template, builtin_model_path, shared_dir):
@@ -91,7 +110,7 @@ def test_subject_from_a_capture(template, builtin_model_path, shared_dir):
     skin = SkinSurface(*model.skin_surface())
     markers = frame.apply(affine_subject(sites))
     assert skin.closest(markers)[3].max() < 1e-4
-    for name, (cells, fiber) in fibers_of(out, model).items():
+    for name, (_, fiber) in fibers_of(out, model).items():
         index = [m.name for m in template.muscles].index(name)
         stretched = template.muscles[index].fiber @ (truth.rotation @ STRETCH).T
         np.testing.assert_allclose(fiber, stretched / np.linalg.norm(stretched, axis=1)[:, None], atol=1e-6)

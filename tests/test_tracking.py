@@ -3,13 +3,11 @@ import csv
 import dataclasses
 import json
 
-from mpi4py import MPI
 import numpy as np
 import pytest
 
 from face_dolfinx.cli.main import main, parse_arguments, tracking_settings
 from face_dolfinx.fitting import FitSettings
-from face_dolfinx.model.folder import load_model
 from face_dolfinx.tracking import PRESETS, RECORD_FIELDS, SettingError, Tracker, TrackingSettings
 
 # A value other than the default for every setting, as the command line gives it and as it is kept.
@@ -17,11 +15,6 @@ OTHER_VALUES = dict(mode=("paper", "paper"), gn_steps=("5", 5), smoothness=("0.5
                     fresh_jacobians=("2", 2), approximate_jacobians=("0.1", 0.1),
                     reuse_factorization=(None, True), newton_tolerance=("1e-3", 1e-3),
                     refresh_contraction=("0.3", 0.3), line_search_iterations=("2", 2))
-
-
-@pytest.fixture(scope="module")
-def model(builtin_model_path):
-    return load_model(builtin_model_path, MPI.COMM_WORLD)
 
 
 def test_every_setting_is_a_fit_option_of_the_same_name():
