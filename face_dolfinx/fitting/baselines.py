@@ -222,7 +222,7 @@ class LinearFit:
 
 class LinearFitter:
     """Fits frames with a ``LinearMarkerModel``, each warm-started from the last; the same
-    ``fit_frame`` as ``FaceFitter``, so ``fitting.track`` drives it."""
+    ``fit_frame`` as ``FaceFitter``, so ``face_dolfinx.tracking.track`` drives it."""
 
     def __init__(self, model: LinearMarkerModel, jaw_geometry=None, head: str = "joint",
                  max_iterations: int = 30, step_tolerance: float = 1e-10, unreachable_rms: float = 3.0):

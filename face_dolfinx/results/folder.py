@@ -263,9 +263,16 @@ class FitFolder:
               *(r.jaw_tmj if r.jaw_tmj is not None else [np.nan] * 3)] for r in results]))
         atomic_write(self.path / "marker_errors.csv", _table(
             ["frame"] + list(self.marker_names), [[r.frame, *r.marker_errors] for r in results]))
-        columns = ["frame", "take_frame", "rms_error_mm", "max_error_mm", "initial_rms_mm", "gn_steps"]
-        rows = [[r.frame, self.take_frames[r.frame], r.rms_error, r.max_error, r.initial_rms, r.gn_steps]
-                for r in results]
+        columns = ["frame", "rms_error_mm", "max_error_mm", "initial_rms_mm", "gn_steps"]
+        rows = [[r.frame, r.rms_error, r.max_error, r.initial_rms, r.gn_steps] for r in results]
+        if truth is not None:
+            columns += ["activation_error_max", "jaw_error_max"]
+            for row, r in zip(rows, results):
+                row += [float(np.abs(r.activations - truth.activations[r.frame]).max()),
+                        float(np.abs(r.jaw_tmj - truth.tmj[r.frame]).max()) if r.jaw_tmj is not None else np.nan]
+        columns.append("take_frame")
+        for row, r in zip(rows, results):
+            row.append(self.take_frames[r.frame])
         measures = self.motion_measures(results)
         if measures is not None:
             for role in ("fitted", "validation"):
@@ -279,12 +286,7 @@ class FitFolder:
             record["pinned_muscles"] = accuracy.pinned_stretches(
                 np.array([r.activations for r in results]), times[[r.frame for r in results]], self.muscle_names)
             atomic_write(self.path / ACCURACY_FILE, json.dumps(record, indent=2))
-        if truth is not None:
-            columns += ["activation_error_max", "jaw_error_max"]
-            for row, r in zip(rows, results):
-                row += [float(np.abs(r.activations - truth.activations[r.frame]).max()),
-                        float(np.abs(r.jaw_tmj - truth.tmj[r.frame]).max()) if r.jaw_tmj is not None else np.nan]
-        columns += ["observability", "unobservable", "flag"]
+        columns += ["observability", "unobservable", "flag"]  # free text last
         for row, r in zip(rows, results):
             row += [r.observability, " ".join(r.unobservable), r.flag]
         atomic_write(self.path / "frames.csv", _table(columns, rows))
