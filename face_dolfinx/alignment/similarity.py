@@ -297,12 +297,11 @@ def align_by_correspondences(capture_neutral, capture_names, model_landmarks, co
                 f"pair {marker!r} -> {landmark_of[marker]!r} stands out: the other pairs put {marker!r} "
                 f"{distance:.1f} mm from {landmark_of[marker]!r}")
         worst = max(residuals, key=residuals.get)
-        if landmark_rms > thresholds.landmark_rms_mm:
-            limit = max(limit for limit in (thresholds.landmark_rms_mm, thresholds.wrong_landmark_rms_mm)
-                        if landmark_rms > limit)
-            (wrong if limit == thresholds.wrong_landmark_rms_mm else extra).append(
-                f"the landmarks fit with RMS {landmark_rms:.1f} mm > {limit:g} mm "
-                f"(worst: {worst!r}, {residuals[worst]:.1f} mm)")
+        for limit, reasons in ((thresholds.wrong_landmark_rms_mm, wrong), (thresholds.landmark_rms_mm, extra)):
+            if landmark_rms > limit:
+                reasons.append(f"the landmarks fit with RMS {landmark_rms:.1f} mm > {limit:g} mm "
+                               f"(worst: {worst!r}, {residuals[worst]:.1f} mm)")
+                break
     quality = _assess(np.linalg.norm(embedding.offsets, axis=1), transform.scale, thresholds, names, extra, wrong)
     return CorrespondenceAlignment(transform, residuals, embedding, quality, check)
 
