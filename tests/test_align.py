@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from face_dolfinx.alignment.similarity import (AlignmentError, Similarity, align_by_correspondences, align_by_icp,
-                                read_correspondence_file, similarity_transform)
+                                               check_pairs, read_correspondence_file, similarity_transform)
 from face_dolfinx.alignment.surface import SkinSurface
 
 
@@ -196,16 +196,78 @@ def test_each_correspondence_problem_is_named():
     assert "M_typo" in message and "ear_left" in message and "only 5" in message
     bad_landmarks = {**landmarks, "chin": [0.0, np.nan, 1.0]}
     assert "landmark 'chin' is not a finite 3-vector" in problem(landmarks=bad_landmarks)
+    twice = {**correspondence, "extra_3": "chin"}
+    assert "landmark 'chin' is paired with more than one capture marker: 'M_chin', 'extra_3'" in problem(
+        correspondence=twice)
     with pytest.raises(AlignmentError, match="unique"):
         align_by_correspondences(neutral, names[:-1] + [names[0]], landmarks, correspondence, SKIN)
 
 
 def test_a_misplaced_landmark_makes_the_alignment_doubtful():
     truth, neutral, names, landmarks, correspondence, _ = correspondence_setup()
-    moved = {**landmarks, "chin": landmarks["chin"] + [0.0, 40.0, 0.0]}
+    moved = {**landmarks, "chin": landmarks["chin"] + [0.0, 20.0, 0.0]}
     result = align_by_correspondences(neutral, names, moved, correspondence, SKIN)
-    assert not result.quality.good
+    assert result.quality.level == "doubtful" and not result.quality.good and not result.quality.wrong
     assert "the landmarks fit with RMS" in result.quality.verdict and "'M_chin'" in result.quality.verdict
+    # The pair is named: the other pairs put its marker 20 mm (plus the 1.5 mm lift) from its landmark.
+    assert list(result.pairs.standing_out) == ["M_chin"]
+    assert result.pairs.standing_out["M_chin"] == pytest.approx(20.0, abs=2.0)
+    assert result.quality.reasons[0].startswith("pair 'M_chin' -> 'chin' stands out: the other pairs put 'M_chin' ")
+
+
+def test_a_pair_far_from_where_the_others_put_it_makes_the_alignment_wrong():
+    truth, neutral, names, landmarks, correspondence, _ = correspondence_setup()
+    # Both kinds of mistake: a landmark given to the wrong marker, and a landmark far off.
+    wrong_marker = {**{m: lm for m, lm in correspondence.items() if m != "M_brow_mid"}, "extra_2": "brow_mid"}
+    far_extra = np.linalg.norm(neutral[names.index("extra_2")] - neutral[names.index("M_brow_mid")])
+    assert far_extra * truth.scale > 30.0
+    moved = {**landmarks, "chin": landmarks["chin"] + [0.0, 40.0, 0.0]}
+    for culprit, landmark, result in (
+            ("extra_2", "brow_mid", align_by_correspondences(neutral, names, landmarks, wrong_marker, SKIN)),
+            ("M_chin", "chin", align_by_correspondences(neutral, names, moved, correspondence, SKIN))):
+        assert result.quality.level == "wrong", result.quality.verdict
+        assert list(result.pairs.standing_out) == [culprit]
+        assert result.quality.reasons[0].startswith(f"pair {culprit!r} -> {landmark!r} stands out")
+    # Without the culprit the rest is good: the pair is what is wrong.
+    rest = {m: lm for m, lm in correspondence.items() if m != "M_chin"}
+    assert align_by_correspondences(neutral, names, moved, rest, SKIN).quality.good
+
+
+def swap_sides(correspondence, landmarks):
+    """Each landmark named *_left given to the marker of its *_right partner and vice versa."""
+    def mirror(name):
+        other = name.replace("_left", "_RIGHT").replace("_right", "_left").replace("_RIGHT", "_right")
+        return other if other in landmarks else name
+    return {marker: mirror(landmark) for marker, landmark in correspondence.items()}
+
+
+def test_left_and_right_swapped_is_wrong_and_named():
+    truth, neutral, names, landmarks, correspondence, _ = correspondence_setup()
+    correct = align_by_correspondences(neutral, names, landmarks, correspondence, SKIN)
+    swapped = align_by_correspondences(neutral, names, landmarks, swap_sides(correspondence, landmarks), SKIN)
+    assert correct.quality.good and correct.pairs.mirrored_rms > 10 * correct.transform.rms
+    assert swapped.quality.wrong
+    assert swapped.quality.reasons[0].startswith("left and right look swapped")
+    # The mirrored assignment of the swapped file is the correct one.
+    assert swapped.pairs.mirrored_rms == pytest.approx(correct.transform.rms, rel=1e-9)
+    assert swapped.pairs.mirrored_scale == pytest.approx(correct.transform.scale, rel=1e-9)
+    # Without landmarks that have a partner of the other side there is nothing to mirror.
+    markers = list(correspondence)
+    source = neutral[[names.index(marker) for marker in markers]]
+    target = np.array([landmarks[correspondence[marker]] for marker in markers])
+    unsided = [f"point {i}" for i in range(len(markers))]
+    assert check_pairs(source, target, markers, unsided, dict(zip(unsided, target))).mirrored_rms is None
+    alone = ["jaw_left", *unsided[1:]]  # no jaw_right
+    assert check_pairs(source, target, markers, alone, dict(zip(alone, target))).mirrored_rms is None
+
+
+def test_a_scale_from_wrong_units_is_wrong():
+    truth, neutral, names, landmarks, correspondence, _ = correspondence_setup()
+    for factor in (2.54, 1 / 2.54, 10.0):  # inches taken for cm and back, cm for mm
+        result = align_by_correspondences(neutral * factor, names, landmarks, correspondence, SKIN)
+        assert result.quality.wrong and result.quality.reasons == (
+            f"scale {result.transform.scale:.3f} is far outside a face's range [0.5, 2]: wrong units, or "
+            "markers that are not on this face",)
 
 
 # --- read_correspondence_file -----------------------------------------------------------------
@@ -278,11 +340,12 @@ def test_rigid_icp_from_a_given_pose_ignores_missing_markers_and_outliers():
     np.testing.assert_allclose(result.quality.near_fraction, 66 / 69)
 
 
-def test_icp_on_garbage_is_doubtful():
+def test_icp_on_garbage_is_wrong():
     garbage = np.random.default_rng(5).uniform(-120, 120, (60, 3))
     result = align_by_icp(garbage, SKIN)
-    assert result.quality.verdict.startswith("doubtful: ")
-    assert not result.quality.good
+    assert result.quality.level == "wrong" and result.quality.wrong and not result.quality.good
+    assert result.quality.verdict.startswith("wrong: markers are ")
+    assert "from the skin, more than 20 mm" in result.quality.reasons[0]
 
 
 def test_icp_needs_enough_markers():

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from face_dolfinx.alignment.similarity import Similarity
 from face_dolfinx.capture import Capture, write_capture
 from face_dolfinx.cli.main import main
+from test_align import swap_sides
 from user_capture import user_sites, write_correspondence
 
 # The lab frame of the "user's" capture: turned, moved far from the model's origin, 10% larger.
@@ -171,14 +172,76 @@ def test_correspondence_problems(model, still_take, shared_dir):
                                                             "M03": "menton", "M04": "glabella", "M05": "alare_left",
                                                             "M06": "alare_right"})
     expect_error(model, out, [str(take), "--correspondence", str(wrong)],
-                 r"still\.trc: cannot align the capture by correspondences:\n  capture marker 'Nose' "
-                 r"\(for landmark 'nasion'\) does not exist in the capture")
+                 r"still\.trc with .*wrong\.toml: cannot align the capture by correspondences:\n  capture marker "
+                 r"'Nose' \(for landmark 'nasion'\) does not exist in the capture")
+    unknown = write_correspondence(shared_dir / "unknown.toml", {**read_pairs(pairs), "M00": "earlobe_left"})
+    expect_error(model, out, [str(take), "--correspondence", str(unknown)],
+                 r"still\.trc with .*unknown\.toml: cannot align the capture by correspondences:\n  landmark "
+                 r"'earlobe_left' \(for capture marker 'M00'\) is not a landmark of the model")
+    twice = shared_dir / "twice.csv"
+    if MPI.COMM_WORLD.rank == 0:
+        twice.write_text("M00,nose_tip\nM01,chin\nM02,nose_tip\n")
+    MPI.COMM_WORLD.barrier()
+    expect_error(model, out, [str(take), "--correspondence", str(twice)],
+                 r"twice\.csv, line 3: landmark 'nose_tip' is already used \(.*twice\.csv, line 1\)")
     five = write_correspondence(shared_dir / "five.toml", {f"M{i:02d}": lm for i, lm in enumerate(
         ["nose_tip", "nasion", "chin", "menton", "glabella"])})
     expect_error(model, out, [str(take), "--correspondence", str(five)],
                  r"only 5 usable correspondences; at least 6 are needed")
     expect_error(model, out, [str(take), "--correspondence", str(shared_dir / "absent.toml")],
                  r"absent\.toml: no such file")
+
+
+def read_pairs(path):
+    from face_dolfinx.alignment.similarity import read_correspondence_file
+    return read_correspondence_file(path)
+
+
+# --- alignments that are clearly wrong: refused, naming the likely culprits, unless accepted -----
+
+def test_left_and_right_swapped_is_refused(model, still_take, shared_dir):
+    take, pairs, names, positions = still_take
+    correspondence = read_pairs(pairs)
+    swapped = write_correspondence(shared_dir / "swapped.toml", swap_sides(correspondence, model.landmarks))
+    out = shared_dir / "never"
+    expect_error(model, out, [str(take), "--correspondence", str(swapped)],
+                 r"still\.trc with .*swapped\.toml: the alignment by correspondence to the model is wrong; nothing "
+                 r"is fitted:\n  left and right look swapped: .* fit with RMS 0\.\d mm instead of \d\d\.\d mm")
+    # A capture whose frame is mirrored (one axis flipped), with the right pairs, is the same mistake
+    # on the built-in face, which is symmetric.
+    mirrored = write_take(shared_dir / "mirrored.trc", names, positions * [-1.0, 1.0, 1.0])
+    expect_error(model, out, [str(mirrored), "--correspondence", str(pairs)],
+                 r"mirrored\.trc with .*still\.toml: the alignment by correspondence to the model is wrong; .*"
+                 r"\n  left and right look swapped: .* the capture's frame is mirrored\)")
+
+
+def test_a_pair_far_off_is_refused_and_named(model, still_take, shared_dir):
+    take, pairs, names, positions = still_take
+    correspondence = read_pairs(pairs)
+    # The chin's landmark given to the marker farthest from it.
+    chin = next(marker for marker, landmark in correspondence.items() if landmark == "chin")
+    free = [name for name in names if name not in correspondence]
+    far = max(free, key=lambda name: np.linalg.norm(positions[0, names.index(name)] - positions[0, names.index(chin)]))
+    wrong = write_correspondence(shared_dir / "far.toml", {**{m: lm for m, lm in correspondence.items() if m != chin},
+                                                           far: "chin"})
+    expect_error(model, shared_dir / "never", [str(take), "--correspondence", str(wrong)],
+                 rf"far\.toml: the alignment by correspondence to the model is wrong; nothing is fitted:\n  "
+                 rf"pair '{far}' -> 'chin' stands out: the other pairs put '{far}' \d+\.\d mm from 'chin'\n")
+
+
+def test_accept_alignment_fits_a_wrong_alignment_with_a_warning(model, still_take, shared_dir, capsys):
+    take, pairs, names, positions = still_take
+    swapped = write_correspondence(shared_dir / "accepted.toml", swap_sides(read_pairs(pairs), model.landmarks))
+    out = shared_dir / "accepted_fit"
+    assert main(fit_args(model, out, str(take), "--correspondence", str(swapped), "--accept-alignment",
+                         "--gn-steps", "1")) == 0
+    alignment = json.loads((out / "alignment.json").read_text())
+    assert alignment["verdict"].startswith("wrong: left and right look swapped")
+    assert alignment["accepted"] == "the wrong alignment was accepted by the user (accept_alignment)"
+    assert len(np.loadtxt(out / "frames.csv", delimiter=",", skiprows=1, usecols=1)) == 3
+    if MPI.COMM_WORLD.rank == 0:
+        warning = [line for line in capsys.readouterr().out.splitlines() if " WARNING " in line]
+        assert len(warning) == 1 and "is wrong (accepted): left and right look swapped" in warning[0]
 
 
 def test_gaps_in_the_neutral_frame(model, still_take, shared_dir):

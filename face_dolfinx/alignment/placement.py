@@ -11,6 +11,9 @@ Three cases, chosen by what the capture and the user give (docs/cli.md):
                     takes): the capture is already in model coordinates and each marker is its site.
 Either way the result gives the transform from capture to model coordinates, each marker's
 material point on the skin and its offset, which is what ``fitting.MarkerSet`` takes.
+An alignment judged "wrong" (a left/right swap, a pair far from where the others put it, an
+implausible scale: ``similarity.QualityThresholds``) is refused before anything is fitted, unless
+the user accepts it; a "doubtful" one is logged as a warning.
 """
 from __future__ import annotations
 
@@ -99,14 +102,22 @@ class CapturePlacement:
 
 
 def place_capture(capture: Capture, neutral_frame: int, skin: SkinSurface, model_markers: dict,
-                  model_landmarks: dict, correspondence: dict[str, str] | None = None) -> CapturePlacement:
+                  model_landmarks: dict, correspondence: dict[str, str] | str | pathlib.Path | None = None,
+                  *, accept_wrong: bool = False) -> CapturePlacement:
     """Align ``capture`` to the model and embed its markers (see the module docstring).
 
-    ``correspondence`` maps capture markers to model landmarks (``align.read_correspondence_file``).
-    Raises AlignmentError, its message starting with the capture file, when the neutral frame
-    lacks markers that must be embedded or the correspondences can't be used.
+    ``correspondence`` maps capture markers to model landmarks, or is a correspondence file
+    (``read_correspondence_file``). Raises AlignmentError, its message starting with the capture
+    file (and the correspondence file), when the neutral frame lacks markers that must be
+    embedded, the correspondences can't be used, or the alignment is "wrong": then the message
+    lists why (pairs that stand out, a left/right swap, ...). With ``accept_wrong`` a wrong
+    alignment is kept, as a doubtful one, and the placement records that it was accepted.
     """
     source = capture.source or "<in-memory capture>"
+    where = source
+    if isinstance(correspondence, (str, pathlib.Path)):
+        where = f"{source} with {correspondence}"
+        correspondence = read_correspondence_file(correspondence)
     neutral = capture.neutral(neutral_frame)
     frame = neutral_frame % capture.n_frames
     names = list(capture.marker_names)
@@ -123,10 +134,13 @@ def place_capture(capture: Capture, neutral_frame: int, skin: SkinSurface, model
         try:
             result = align_by_correspondences(neutral, names, model_landmarks, correspondence, skin)
         except AlignmentError as error:
-            raise AlignmentError(f"{source}: {error}" + (f"\n  {choose}" if missing else "")) from None
-        method, transform, quality, residuals, details = ("correspondence", result.transform, result.quality,
-                                                          result.residuals, {})
+            raise AlignmentError(f"{where}: {error}" + (f"\n  {choose}" if missing else "")) from None
+        method, transform, quality, residuals = "correspondence", result.transform, result.quality, result.residuals
+        details = dict(pairs_standing_out_mm=result.pairs.standing_out,
+                       mirrored_assignment=None if result.pairs.mirrored_rms is None else
+                       dict(landmark_rms_mm=result.pairs.mirrored_rms, scale=result.pairs.mirrored_scale))
         embedding = result.embedding
+        advice = "check the correspondences"
     else:
         if missing:
             raise AlignmentError(f"{source}: neutral frame {frame} lacks markers {_listed(missing)}; {choose}")
@@ -137,34 +151,41 @@ def place_capture(capture: Capture, neutral_frame: int, skin: SkinSurface, model
         method, transform, quality, residuals = "icp", result.transform, result.quality, {}
         details = dict(iterations=int(result.iterations), converged=bool(result.converged))
         embedding = skin.embed(transform.apply(neutral), names)
+        advice = "give a correspondence file (capture marker -> model landmark)"
+    if quality.wrong:
+        if not accept_wrong:
+            raise AlignmentError(f"{where}: the alignment by {method} to the model is wrong; nothing is fitted:\n  "
+                                 + "\n  ".join(quality.reasons) + f"\n  {advice}, or pass accept_alignment=True "
+                                 "(--accept-alignment on the command line) to fit with this alignment anyway")
+        details["accepted"] = "the wrong alignment was accepted by the user (accept_alignment)"
     return CapturePlacement(method, frame, transform, names, embedding.positions(skin.points) - embedding.offsets,
                             embedding.offsets, quality, residuals, details)
 
 
 def place_on_model(model, capture: Capture, neutral_frame: int = 0,
-                   correspondence: dict[str, str] | str | pathlib.Path | None = None) -> CapturePlacement:
+                   correspondence: dict[str, str] | str | pathlib.Path | None = None,
+                   accept_alignment: bool = False) -> CapturePlacement:
     """``place_capture`` for a loaded model (collective): computed on rank 0 and sent to the other
-    ranks, so that every rank fits the same markers; logged, with a warning when doubtful.
-    ``correspondence`` is a mapping or a correspondence file (``read_correspondence_file``)."""
+    ranks, so that every rank fits the same markers; logged, with a warning when doubtful (or wrong
+    and accepted by ``accept_alignment``); a wrong alignment otherwise raises AlignmentError on
+    every rank. ``correspondence`` is a mapping or a correspondence file."""
     skin_points, skin_triangles = model.skin_surface()  # collective
     comm = model.mesh.comm
 
     def place():
-        pairs = correspondence
-        if isinstance(pairs, (str, pathlib.Path)):
-            pairs = read_correspondence_file(pairs)
         return place_capture(capture, neutral_frame, SkinSurface(skin_points, skin_triangles),
-                             model.markers, model.landmarks, pairs)
+                             model.markers, model.landmarks, correspondence, accept_wrong=accept_alignment)
     placement = on_rank_0(place, comm)
     log.info("%s", placement.summary())
     if placement.doubtful:
-        reasons = (placement.details["warning"] if placement.quality is None
-                   else placement.quality.verdict.removeprefix("doubtful: "))
+        quality = placement.quality
+        reasons = placement.details["warning"] if quality is None else "; ".join(quality.reasons)
+        level = "doubtful" if quality is None or not quality.wrong else "wrong (accepted)"
         advice = ("check the correspondences" if placement.method == "correspondence" else
                   "give --correspondence (capture marker -> model landmark) for a reliable alignment")
-        log.warning("the alignment of %s to model %s is doubtful: %s. The fit goes on, but its results are "
+        log.warning("the alignment of %s to model %s is %s: %s. The fit goes on, but its results are "
                     "only as good as the alignment: %s, or adapt the model to the subject (build --subject)",
-                    capture.source, model.name, reasons, advice)
+                    capture.source, model.name, level, reasons, advice)
     return placement
 
 

@@ -6,12 +6,16 @@ coordinates into model coordinates. It is found either from named correspondence
 marker -> model landmark; Umeyama's closed form) or, without names, by ICP of the markers against
 the skin. Either way the markers are then embedded in the skin at their closest points, keeping
 their offsets (sifakis2005 section 5), and the alignment is judged: how far the aligned markers
-are from the skin, and a verdict, "good" or "doubtful: <reasons>". See docs/alignment.md.
+are from the skin and, by names, how well the pairs agree, whether one pair disagrees with the
+others and whether the mirrored (left/right swapped) assignment fits much better. The verdict is
+"good", "doubtful: <reasons>" (fit, but warn) or "wrong: <reasons>" (clearly wrong: refuse). See
+docs/alignment.md.
 """
 from __future__ import annotations
 
 import csv
 import itertools
+import re
 import tomllib
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -130,7 +134,10 @@ def similarity_transform(source, target, weights=None, allow_scale=True) -> Simi
 
 @dataclass(frozen=True)
 class QualityThresholds:
-    """When an alignment is "good": every test passes. Distances in mm."""
+    """When an alignment is "good" (every test of the first group passes) and when it is "wrong"
+    (a test of the second group fails). Distances in mm. The second group was chosen by
+    measurement on synthetic and real captures (docs/alignment.md): a real face of other
+    proportions than the template's, correctly paired, stays clear of every one of them."""
 
     rms_mm: float = 2.0          # RMS distance of the aligned markers to the skin
     max_mm: float = 5.0          # distance of the worst marker
@@ -139,26 +146,63 @@ class QualityThresholds:
     scale_range: tuple[float, float] = (0.8, 1.25)  # plausible capture-to-model size ratios
     landmark_rms_mm: float = 5.0     # RMS of correspondence residuals (alignment by names)
     rival_ratio: float = 1.5         # ICP: another pose whose trimmed RMS is within this factor is a rival
+    # A pair stands out when the other pairs put its marker more than stand_out_ratio times their
+    # own residual (per coordinate, degrees of freedom counted) and more than stand_out_mm from
+    # its landmark; it makes the alignment wrong beyond wrong_pair_mm, given at least
+    # wrong_pair_min_pairs pairs (fewer fit a real face of other proportions too loosely to tell).
+    stand_out_ratio: float = 6.0
+    stand_out_mm: float = 10.0
+    wrong_pair_mm: float = 30.0
+    wrong_pair_min_pairs: int = 8
+    # Left and right are swapped when the mirrored assignment fits with less than this fraction of
+    # the landmark RMS, that RMS being above landmark_rms_mm.
+    swap_ratio: float = 2.0 / 3.0
+    wrong_scale_range: tuple[float, float] = (0.5, 2.0)  # beyond: wrong units, or not this face
+    wrong_landmark_rms_mm: float = 20.0
+    wrong_rms_mm: float = 20.0       # markers to skin
 
 
 @dataclass(frozen=True, eq=False)
 class AlignmentQuality:
-    """How well the aligned markers sit on the skin."""
+    """How well the aligned markers sit on the skin, and the verdict on the alignment."""
 
     distances: np.ndarray  # (n,) mm from each aligned marker to the skin; NaN for a missing marker
     rms: float
     max: float
     near_mm: float
     near_fraction: float   # fraction of the present markers within near_mm of the skin
-    verdict: str           # "good" or "doubtful: <reasons>"
+    level: str             # "good", "doubtful" (fit, but warn) or "wrong" (refuse)
+    reasons: tuple[str, ...] = ()   # why not good: what makes it wrong first, then what makes it doubtful
+
+    @property
+    def verdict(self) -> str:
+        """"good", "doubtful: <reasons>" or "wrong: <reasons>"."""
+        return self.level if not self.reasons else f"{self.level}: " + "; ".join(self.reasons)
 
     @property
     def good(self) -> bool:
-        return self.verdict == "good"
+        return self.level == "good"
+
+    @property
+    def wrong(self) -> bool:
+        return self.level == "wrong"
 
     def __str__(self):
         return (f"{self.verdict} (markers to skin: RMS {self.rms:.2f} mm, max {self.max:.2f} mm, "
                 f"{100 * self.near_fraction:.0f}% within {self.near_mm:g} mm)")
+
+
+@dataclass(frozen=True, eq=False)
+class PairCheck:
+    """How the correspondences agree with each other (``check_pairs``)."""
+
+    # capture marker -> distance (mm) from its landmark at which the other pairs put it, for the
+    # pairs that stand out, worst first
+    standing_out: dict[str, float]
+    # the same fit with every left/right landmark swapped for its mirror partner: its landmark RMS
+    # and scale; None when no pair has a mirror partner among the model's landmarks
+    mirrored_rms: float | None
+    mirrored_scale: float | None
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,6 +211,7 @@ class CorrespondenceAlignment:
     residuals: dict[str, float]    # capture marker -> |transform(marker) - landmark|, mm
     embedding: MarkerEmbedding     # every capture marker, named, in capture order
     quality: AlignmentQuality
+    pairs: PairCheck
 
 
 @dataclass(frozen=True, eq=False)
@@ -208,6 +253,13 @@ def align_by_correspondences(capture_neutral, capture_names, model_landmarks, co
             problems.append(f"landmark {landmark!r} (for capture marker {marker!r}) is not a landmark of the model")
         elif not (np.shape(model_landmarks[landmark]) == (3,) and np.all(np.isfinite(model_landmarks[landmark]))):
             problems.append(f"landmark {landmark!r} is not a finite 3-vector: {model_landmarks[landmark]!r}")
+    markers_of = {}
+    for marker, landmark in correspondence.items():
+        markers_of.setdefault(landmark, []).append(marker)
+    for landmark, markers_at in markers_of.items():
+        if len(markers_at) > 1:
+            problems.append(f"landmark {landmark!r} is paired with more than one capture marker: "
+                            f"{', '.join(map(repr, markers_at))}")
     usable = [(marker, landmark) for marker, landmark in correspondence.items()
               if marker in row_of and present[row_of[marker]] and landmark in model_landmarks]
     if len(usable) < MIN_CORRESPONDENCES:
@@ -226,14 +278,96 @@ def align_by_correspondences(capture_neutral, capture_names, model_landmarks, co
                          np.linalg.norm(transform.apply(source) - target, axis=1).tolist()))
     embedding = skin.embed(transform.apply(markers), names)
 
+    check = check_pairs(source, target, [marker for marker, _ in usable], [landmark for _, landmark in usable],
+                        model_landmarks, allow_scale=allow_scale, thresholds=thresholds)
     landmark_rms = float(np.sqrt(np.mean(np.square(list(residuals.values())))))
-    extra = []
-    if landmark_rms > thresholds.landmark_rms_mm:
+    wrong, extra = [], []
+    swapped = (check.mirrored_rms is not None and landmark_rms > thresholds.landmark_rms_mm
+               and check.mirrored_rms < thresholds.swap_ratio * landmark_rms)
+    if swapped:
+        wrong.append(f"left and right look swapped: with each left landmark exchanged for its right partner "
+                     f"and vice versa, the landmarks fit with RMS {check.mirrored_rms:.1f} mm instead of "
+                     f"{landmark_rms:.1f} mm, at scale {check.mirrored_scale:.3f} instead of {transform.scale:.3f} "
+                     "(pair left markers with left landmarks; if they are, the capture's frame is mirrored)")
+    else:
+        landmark_of = dict(usable)
+        for marker, distance in check.standing_out.items():
+            far = distance > thresholds.wrong_pair_mm and len(usable) >= thresholds.wrong_pair_min_pairs
+            (wrong if far else extra).append(
+                f"pair {marker!r} -> {landmark_of[marker]!r} stands out: the other pairs put {marker!r} "
+                f"{distance:.1f} mm from {landmark_of[marker]!r}")
         worst = max(residuals, key=residuals.get)
-        extra.append(f"the landmarks fit with RMS {landmark_rms:.1f} mm > {thresholds.landmark_rms_mm:g} mm "
-                     f"(worst: {worst!r}, {residuals[worst]:.1f} mm)")
-    quality = _assess(np.linalg.norm(embedding.offsets, axis=1), transform.scale, thresholds, names, extra)
-    return CorrespondenceAlignment(transform, residuals, embedding, quality)
+        for limit, reasons in ((thresholds.wrong_landmark_rms_mm, wrong), (thresholds.landmark_rms_mm, extra)):
+            if landmark_rms > limit:
+                reasons.append(f"the landmarks fit with RMS {landmark_rms:.1f} mm > {limit:g} mm "
+                               f"(worst: {worst!r}, {residuals[worst]:.1f} mm)")
+                break
+    quality = _assess(np.linalg.norm(embedding.offsets, axis=1), transform.scale, thresholds, names, extra, wrong)
+    return CorrespondenceAlignment(transform, residuals, embedding, quality, check)
+
+
+def check_pairs(source, target, markers, landmarks, model_landmarks, *, allow_scale=True,
+                thresholds=QualityThresholds()) -> PairCheck:
+    """How correspondences agree: pairs that stand out, and the fit of the mirrored assignment.
+
+    source (k, 3) are the capture markers ``markers``, target (k, 3) their landmarks ``landmarks``.
+    A pair stands out when the similarity fitted to the other pairs puts its marker more than
+    ``stand_out_mm`` and more than ``stand_out_ratio`` times the others' residual from its
+    landmark; that residual, per coordinate, is counted with the fit's degrees of freedom, so that
+    few pairs, which a similarity fits closely, do not make every left-out pair look far. The worst
+    such pair is set aside and the rest checked again, while the pairs left for a fit are at
+    least MIN_CORRESPONDENCES - 1. The mirrored assignment exchanges every landmark named on one
+    side (``*_left``, ``left_*``, ``*_L``, ...) for its partner of the other side, when the model
+    has that partner.
+    """
+    keep = list(range(len(source)))
+    standing_out = {}
+    while len(keep) >= MIN_CORRESPONDENCES:
+        distances, spreads = _left_out_errors(source[keep], target[keep], allow_scale)
+        worst = int(np.argmax(distances / np.maximum(spreads, np.finfo(float).tiny)))
+        if not (distances[worst] > thresholds.stand_out_mm
+                and distances[worst] > thresholds.stand_out_ratio * spreads[worst]):
+            break
+        standing_out[markers[keep[worst]]] = float(distances[worst])
+        del keep[worst]
+    mirrored = [_mirror_name(landmark) for landmark in landmarks]
+    mirrored = [other if other in model_landmarks else landmark for other, landmark in zip(mirrored, landmarks)]
+    if mirrored == list(landmarks):
+        return PairCheck(standing_out, None, None)
+    fit = similarity_transform(source, np.array([model_landmarks[name] for name in mirrored], dtype=np.float64),
+                               allow_scale=allow_scale)
+    return PairCheck(standing_out, fit.rms, fit.scale)
+
+
+def _left_out_errors(source, target, allow_scale):
+    """For each pair: the distance of its transformed source from its target under the fit to the
+    other pairs, and those pairs' residual per coordinate (root of the squared residuals' sum over
+    the degrees of freedom left: 3 per point less 7, or 6 without scale)."""
+    count = len(source)
+    parameters = 7 if allow_scale else 6
+    distances, spreads = np.empty(count), np.empty(count)
+    for pair in range(count):
+        others = np.arange(count) != pair
+        fit = similarity_transform(source[others], target[others], allow_scale=allow_scale)
+        squares = np.sum((fit.apply(source[others]) - target[others]) ** 2)
+        distances[pair] = np.linalg.norm(fit.apply(source[pair]) - target[pair])
+        spreads[pair] = np.sqrt(squares / max(3 * (count - 1) - parameters, 1))
+    return distances, spreads
+
+
+# One side of the face in a name: a word of its own (between separators such as _ - . or a space).
+_SIDE = re.compile(r"(?<![A-Za-z0-9])(left|right|l|r)(?![A-Za-z0-9])", re.IGNORECASE)
+_OTHER_SIDE = {"left": "right", "right": "left", "l": "r", "r": "l"}
+
+
+def _mirror_name(name: str) -> str:
+    """``name`` with left and right exchanged (case kept): mouth_corner_left -> mouth_corner_right,
+    Cheek_L -> Cheek_R; unchanged without a side."""
+    def other(match):
+        word = match.group(0)
+        swapped = _OTHER_SIDE[word.lower()]
+        return swapped.upper() if word.isupper() else swapped.capitalize() if word[0].isupper() else swapped
+    return _SIDE.sub(other, name)
 
 
 def align_by_icp(capture_neutral, skin: SkinSurface, initial: Similarity | None = None, allow_scale=True,
@@ -513,15 +647,23 @@ def _surface_moments(skin):
     return centroid, second - np.outer(centroid, centroid)
 
 
-def _assess(distances, scale, thresholds, names, problems) -> AlignmentQuality:
-    """Summarise marker-to-skin distances and give the verdict."""
+def _assess(distances, scale, thresholds, names, problems, wrong=()) -> AlignmentQuality:
+    """Summarise marker-to-skin distances and give the verdict: ``wrong`` (reasons found by the
+    caller) and the tests of ``thresholds`` decide "wrong", ``problems`` and the rest "doubtful"."""
     present = np.isfinite(distances)
     found = distances[present]
     rms = float(np.sqrt(np.mean(found ** 2)))
     worst = int(np.flatnonzero(present)[np.argmax(found)])
     near_fraction = float(np.mean(found <= thresholds.near_mm))
+    wrong = list(wrong)
+    low, high = thresholds.wrong_scale_range
+    if not low <= scale <= high:
+        wrong.append(f"scale {scale:.3f} is far outside a face's range [{low:g}, {high:g}]: wrong units, or "
+                     "markers that are not on this face")
+    if rms > thresholds.wrong_rms_mm:
+        wrong.append(f"markers are {rms:.1f} mm (RMS) from the skin, more than {thresholds.wrong_rms_mm:g} mm")
     reasons = list(problems)
-    if rms > thresholds.rms_mm:
+    if thresholds.rms_mm < rms <= thresholds.wrong_rms_mm:
         reasons.append(f"markers are {rms:.1f} mm (RMS) from the skin, more than {thresholds.rms_mm:g} mm")
     if distances[worst] > thresholds.max_mm:
         label = repr(names[worst]) if names is not None else f"#{worst}"
@@ -530,10 +672,11 @@ def _assess(distances, scale, thresholds, names, problems) -> AlignmentQuality:
         reasons.append(f"only {100 * near_fraction:.0f}% of the markers are within {thresholds.near_mm:g} mm "
                        f"of the skin (want {100 * thresholds.min_near_fraction:.0f}%)")
     low, high = thresholds.scale_range
-    if not low <= scale <= high:
+    if not low <= scale <= high and thresholds.wrong_scale_range[0] <= scale <= thresholds.wrong_scale_range[1]:
         reasons.append(f"scale {scale:.3f} is outside the plausible range [{low:g}, {high:g}]")
-    verdict = "good" if not reasons else "doubtful: " + "; ".join(reasons)
-    return AlignmentQuality(distances, rms, float(distances[worst]), thresholds.near_mm, near_fraction, verdict)
+    level = "wrong" if wrong else "doubtful" if reasons else "good"
+    return AlignmentQuality(distances, rms, float(distances[worst]), thresholds.near_mm, near_fraction, level,
+                            tuple(wrong + reasons))
 
 
 def _as_points(points, name) -> np.ndarray:

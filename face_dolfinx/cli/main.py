@@ -256,7 +256,7 @@ def fit(model, args) -> None:
     # Every input is checked before the result folder exists: a bad input leaves nothing behind.
     capture = read_capture(capture_path, units=args.units, up_axis=args.up_axis,
                            check_scale=not args.no_scale_check)
-    placement = place_on_model(model, capture, args.neutral_frame, args.correspondence)
+    placement = place_on_model(model, capture, args.neutral_frame, args.correspondence, args.accept_alignment)
     take_frames = np.arange(capture.n_frames)[_frame_slice(args.frames, capture.n_frames)]
     capture = capture.select(take_frames)
     truth_file = pathlib.Path(args.truth) if args.truth else truth_path(capture_path)
@@ -451,6 +451,9 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "markers are not the model's marker sites (without it: ICP against the skin)")
     p.add_argument("--neutral-frame", type=int, default=0,
                    help="frame of the take at rest: aligned to the model, its markers embedded in the skin")
+    p.add_argument("--accept-alignment", action="store_true",
+                   help="fit even when the alignment to the model is judged wrong (a left/right swap, a pair "
+                        "far off, an implausible scale): warned about and recorded in alignment.json")
     p.add_argument("--units", help="mm, cm or m when the file does not say")
     p.add_argument("--up-axis", choices=("Y", "Z"), help="vertical axis of the file")
     p.add_argument("--no-scale-check", action="store_true",
