@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 from mpi4py import MPI
 
 from face_dolfinx.files import atomic_directory
@@ -129,22 +130,22 @@ def adapt_to_markers(template: ModelArrays, neutral, names, correspondence: dict
 
     skin_points, triangles = template.skin_surface()
     template_skin = SkinSurface(skin_points, triangles)
-    border = _border_nodes(triangles)
+    openings = _opening_edges(triangles)
     fixed = _landmark_pairs(template_skin, np.array([template.landmarks[lm] for _, lm in pairs]),
                             subject[landmark_rows])
     free = np.array([i for i in range(len(names)) if i not in set(landmark_rows)], dtype=int)
 
     def match(current: SkinSurface) -> Pairs:
-        triangle, barycentric, _, _ = current.closest(subject[free])
-        on_skin = ~_at_border(triangles, border, triangle, barycentric)
+        triangle, barycentric, over_opening = _closest_or_opening(current, openings, subject[free])
+        on_skin = ~over_opening
         return Pairs(barycentric_rows(triangles, triangle[on_skin], barycentric[on_skin], len(skin_points)),
                      subject[free][on_skin])
 
     registration = _register(skin_points, triangles, fixed, match)
     new, measures = carry_model(template, registration.positions, name=name)
     new_skin = SkinSurface(new.points[template.skin_nodes], triangles)
-    triangle, barycentric, _, distances = new_skin.closest(subject)
-    over_opening = _at_border(triangles, border, triangle, barycentric)
+    distances = new_skin.closest(subject)[3]
+    over_opening = _closest_or_opening(new_skin, openings, subject)[2]
     over_opening[landmark_rows] = False
     far = [f"{names[i]} ({distances[i]:.1f} mm)" for i in np.flatnonzero(distances > MAX_MARKER_DISTANCE_MM)]
     if far:
@@ -238,6 +239,38 @@ def _at_border(triangles, border, triangle, barycentric) -> np.ndarray:
     """Closest points on a border edge or border node of a surface: beyond where it ends."""
     on_edge = barycentric <= 1e-9
     return on_edge.any(axis=1) & np.all(np.isin(triangles[triangle], border) | on_edge, axis=1)
+
+
+def _opening_edges(triangles) -> list[np.ndarray]:
+    """The border edges (k, 2) of each opening of a surface (eyes, mouth): every border loop but
+    the longest, which is the surface's outer edge."""
+    edges = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    border = unique[counts == 1]
+    if not len(border):
+        return []
+    nodes, local = np.unique(border, return_inverse=True)
+    graph = sp.csr_matrix((np.ones(len(border)), (local.reshape(-1, 2)[:, 0], local.reshape(-1, 2)[:, 1])),
+                          shape=(len(nodes), len(nodes)))
+    _, loop_of_node = connected_components(graph, directed=False)
+    loop_of_edge = loop_of_node[local.reshape(-1, 2)[:, 0]]
+    loops = [border[loop_of_edge == k] for k in range(loop_of_node.max() + 1)]
+    loops.sort(key=len)
+    return loops[:-1]
+
+
+def _closest_or_opening(skin: SkinSurface, openings: list[np.ndarray], query):
+    """Closest skin triangles and barycentric coordinates of ``query``, and which of the points
+    are over an opening instead: closer to the opening's cap (a fan of triangles from the rim to
+    its centroid, a stand-in for a closed eyelid or closed lips) than to any skin triangle."""
+    triangle, barycentric, _, distance = skin.closest(query)
+    over = np.zeros(len(query), dtype=bool)
+    for rim in openings:
+        centre = skin.points[np.unique(rim)].mean(axis=0)
+        cap = SkinSurface(np.vstack([skin.points, centre]),
+                          np.column_stack([rim, np.full(len(rim), len(skin.points))]))
+        over |= cap.closest(query)[3] < distance
+    return triangle, barycentric, over
 
 
 def _border_nodes(triangles) -> np.ndarray:
@@ -422,11 +455,21 @@ def read_surface(path, units: str = "mm") -> SurfaceScan:
     if not triangles:
         raise SubjectError(f"{path}: no triangles (cell types: {', '.join(b.type for b in mesh.cells) or 'none'})")
     points = np.asarray(mesh.points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
-        raise SubjectError(f"{path}: points must be finite 3-D coordinates")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise SubjectError(f"{path}: points must be 3-D coordinates, not of shape {points.shape}")
+    not_finite = np.flatnonzero(~np.all(np.isfinite(points), axis=1))
+    if not_finite.size:
+        raise SubjectError(f"{path}: {not_finite.size} vertices are not finite (first: vertex {not_finite[0]})")
     unique, inverse = np.unique(points * _mm_per(units, path), axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
-    return SurfaceScan(path, unique, inverse[np.concatenate(triangles)], inverse)
+    merged = inverse[np.concatenate(triangles)]
+    collapsed = np.flatnonzero((merged[:, 0] == merged[:, 1]) | (merged[:, 1] == merged[:, 2])
+                               | (merged[:, 2] == merged[:, 0]))
+    if collapsed.size:
+        raise SubjectError(f"{path}: {collapsed.size} triangles have two corners at the same point (duplicate "
+                           f"vertices; first: triangle {collapsed[0]}): repair the surface (merge its vertices, "
+                           f"drop the degenerate triangles)")
+    return SurfaceScan(path, unique, merged, inverse)
 
 
 def read_landmark_file(path, scan: SurfaceScan, units: str = "mm") -> dict[str, np.ndarray]:
