@@ -408,6 +408,35 @@ def _similarity_json(transform: Similarity) -> dict:
     return dict(scale=transform.scale, rotation=transform.rotation.tolist(), translation=transform.translation.tolist())
 
 
+def summary(adaptation: Adaptation, subject: str) -> str:
+    """What an adaptation did, in a few lines: residual, mesh quality, muscle volumes, markers
+    over openings and those farthest from the template's skin (marker offsets)."""
+    record = adaptation.record
+    worst = max(adaptation.distances, key=adaptation.distances.get)
+    what = "markers" if record["method"] == "capture markers" else "skin nodes inside the scan"
+    volumes = record["muscle_volume_mm3"]
+    ratio = {name: v["after"] / v["before"] for name, v in volumes.items() if v["before"] > 0}
+    smallest, largest = min(ratio, key=ratio.get), max(ratio, key=ratio.get)
+    lines = [f"adapted {adaptation.model.name} to {subject}: the skin is RMS {adaptation.rms:.3f} mm, max "
+             f"{adaptation.max:.3f} mm ({worst}) from the subject's {len(adaptation.distances)} {what}; "
+             f"{adaptation.iterations} matching rounds, skin stiffness down to "
+             f"{adaptation.registration.stiffness:g} mm^2"
+             f"{'' if adaptation.registration.settled else ' (matches still sliding along the skin)'}",
+             f"  elements: min quality {record['min_quality_before']:.3g} -> {record['min_quality_after']:.3g}, "
+             f"none inverted; pseudo-elastic carry in {record['elastic_load_steps']} load steps, "
+             f"{record['elastic_newton_iterations']} Newton iterations",
+             f"  muscle volumes x{ratio[smallest]:.2f} ({smallest}) to x{ratio[largest]:.2f} ({largest})"]
+    if record.get("markers_over_openings"):
+        lines.append(f"  over an opening of the skin (shape nothing): {', '.join(record['markers_over_openings'])}")
+    if "markers" in record:
+        offsets = {n: m["template_skin_distance_mm"] for n, m in record["markers"].items()}
+        farthest = sorted(offsets, key=offsets.get, reverse=True)[:3]
+        lines.append("  marker offsets from the template's skin (aligned rigidly): RMS "
+                     f"{np.sqrt(np.mean(np.square(list(offsets.values())))):.1f} mm, largest "
+                     + ", ".join(f"{n} {offsets[n]:.1f} mm" for n in farthest))
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------------------------------------
 # Files
 # ---------------------------------------------------------------------------------------------
