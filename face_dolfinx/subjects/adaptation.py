@@ -65,6 +65,8 @@ MAX_SURFACE_MATCH_MM = 20.0
 # Flesh nodes whose motion defines the smooth map for points off the mesh (the jaw's condyles,
 # muscle geometry): enough to follow the elastic solve's large-scale motion, cheap to fit.
 FAR_FIELD_NODES = 400
+# Stiffer registrations tried when the flesh cannot follow the softest one.
+MAX_STIFFER_STEPS = 3
 # The thin-plate spline reproduces an affine motion exactly, and its fitted map is smooth (C1)
 # at its control points.
 WARP_KERNEL = "thin_plate"
@@ -74,6 +76,10 @@ MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 
 class SubjectError(ValueError):
     """Subject inputs that can't be used, or an adaptation that would break the mesh; the message says which."""
+
+
+class CarryError(SubjectError):
+    """The flesh cannot be carried onto a registered skin (no equilibrium)."""
 
 
 @dataclass
@@ -142,7 +148,7 @@ def adapt_to_markers(template: ModelArrays, neutral, names, correspondence: dict
                      subject[free][on_skin])
 
     registration = _register(skin_points, triangles, fixed, match)
-    new, measures = carry_model(template, registration.positions, name=name)
+    new, measures, registration = _carry(template, registration, name)
     new_skin = SkinSurface(new.points[template.skin_nodes], triangles)
     distances = new_skin.closest(subject)[3]
     over_opening = _closest_or_opening(new_skin, openings, subject)[2]
@@ -205,7 +211,7 @@ def adapt_to_surface(template: ModelArrays, scan: SurfaceScan, landmarks: dict[s
         return Pairs(node_rows[np.flatnonzero(keep)], closest[keep])
 
     registration = _register(skin_points, triangles, fixed, match)
-    new, measures = carry_model(template, registration.positions, name=name)
+    new, measures, registration = _carry(template, registration, name)
     skin_nodes = template.skin_nodes
     _, distances, covered = within(new.points[skin_nodes])
     covered &= distances <= MAX_SURFACE_MATCH_MM
@@ -233,6 +239,23 @@ def _register(skin_points, triangles, fixed: Pairs, match) -> SkinRegistration:
                            f"triangles over: the subject points cross over; check the correspondences "
                            f"and that the points are on this face")
     return registration
+
+
+def _carry(template: ModelArrays, registration: SkinRegistration, name: str):
+    """``carry_model`` of the registered skin; where the flesh cannot follow it (no equilibrium:
+    the skin squeezes a cell between two of its layers, at a lip), of the registration's stiffer
+    steps, up to MAX_STIFFER_STEPS, the latest first. Returns the model, its measures and the
+    registration used."""
+    candidates = [(registration.stiffness, registration.positions)] + registration.stiffer[:MAX_STIFFER_STEPS]
+    for attempt, (stiffness, positions) in enumerate(candidates):
+        try:
+            new, measures = carry_model(template, positions, name=name)
+        except CarryError:
+            if attempt == len(candidates) - 1:
+                raise
+            continue
+        measures["skin_stiffness_mm2"] = stiffness
+        return new, measures, replace(registration, positions=positions, stiffness=stiffness)
 
 
 def _at_border(triangles, border, triangle, barycentric) -> np.ndarray:
@@ -304,7 +327,7 @@ def carry_model(template: ModelArrays, skin_targets: np.ndarray, *, name: str) -
     try:
         points, report = carry.solve(skin_targets - reference[skin_nodes])
     except EquilibriumError as error:
-        raise SubjectError(f"the template cannot be carried onto the registered skin ({error}): the skin "
+        raise CarryError(f"the template cannot be carried onto the registered skin ({error}): the skin "
                            f"registration folds or pulls the skin through the flesh; check the "
                            f"correspondences and that the markers are on this face") from None
     bad = inverted_tets(points, template.cells)

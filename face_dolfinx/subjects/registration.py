@@ -41,6 +41,7 @@ FIXED_WEIGHT = 10.0          # landmarks pull ten times as hard as a matched poi
 AFFINE_ROUNDS = 50
 ROUNDS_PER_STIFFNESS = 3
 FINAL_ROUNDS = 30            # the softest stiffness: until the matches settle
+FOLD_BISECTIONS = 3
 SETTLED_MM = 0.01            # mm: pairs moving less than this have settled
 # The affine stage settles further: an affine subject must come out exact, not nearly so.
 AFFINE_SETTLED_MM = 1e-4
@@ -66,6 +67,7 @@ class SkinRegistration:
     rounds: int                 # matching rounds in all
     settled: bool               # the last stiffness's matches settled
     stiffness: float            # the softest stiffness taken (mm^2): softer ones would fold the skin
+    stiffer: list               # (stiffness, positions) of the steps before, the latest first
     folded: np.ndarray          # skin triangles whose orientation the registration reversed
 
 
@@ -106,14 +108,17 @@ def register_skin(points: np.ndarray, triangles: np.ndarray, fixed: Pairs,
         affine = _weighted_affine(points, pairs)
     rest = points @ affine[:, :3].T + affine[:, 3]
 
-    # 2. Non-rigid, stiff to soft; a step that would fold the skin is not taken.
+    # 2. Non-rigid, stiff to soft; a step that would fold the skin is not taken, but up to
+    # FOLD_BISECTIONS stiffnesses between the last one taken and the folding one are tried.
     bending, area = _bending_operator(rest, triangles)
     displacement = np.zeros_like(points)
-    settled, stiffness_reached = False, None
-    for level, stiffness in enumerate(schedule):
+    settled, stiffness_reached, taken = False, None, []
+    levels, level, bisections = list(schedule), 0, 0
+    while level < len(levels):
+        stiffness = levels[level]
         regulariser = stiffness * (bending + (1.0 / decay ** 4) * sp.diags(area))
         trial, previous, trial_settled = displacement, None, False
-        for _ in range(FINAL_ROUNDS if level == len(schedule) - 1 else ROUNDS_PER_STIFFNESS):
+        for _ in range(FINAL_ROUNDS if level == len(levels) - 1 else ROUNDS_PER_STIFFNESS):
             rounds += 1
             pairs = pairs_now(rest + trial)
             stacked = _pair_points(points, pairs)
@@ -129,10 +134,17 @@ def register_skin(points: np.ndarray, triangles: np.ndarray, fixed: Pairs,
             solve = spla.factorized(sp.csc_matrix(matrix))
             trial = np.column_stack([solve(rhs[:, d]) for d in range(3)])
         if stiffness_reached is not None and _folded(rest, rest + trial, triangles).size:
-            break
+            if bisections == FOLD_BISECTIONS:
+                break
+            bisections += 1
+            levels = levels[:level] + [float(np.sqrt(stiffness_reached * stiffness))]
+            continue
+        if stiffness_reached is not None:
+            taken.insert(0, (stiffness_reached, rest + displacement))
         displacement, settled, stiffness_reached = trial, trial_settled, stiffness
+        level += 1
     positions = rest + displacement
-    return SkinRegistration(positions, affine, rounds, settled, stiffness_reached,
+    return SkinRegistration(positions, affine, rounds, settled, stiffness_reached, taken,
                             _folded(rest, positions, triangles))
 
 
