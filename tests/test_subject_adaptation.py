@@ -92,9 +92,9 @@ def to_template(folder) -> Similarity:
 
 
 def test_a_homogeneous_skin_motion_moves_the_flesh_alike(template):
-    """The pseudo-elastic solve with an affine skin motion prescribed: the flesh inside moves by
-    the same affine map only where its inner surfaces are held too; here every boundary node is,
-    and the interior must follow to solver accuracy."""
+    """The pseudo-elastic solve with every boundary node moved by one affine map: a homogeneous
+    deformation is the equilibrium, so the interior nodes must follow the same map to solver
+    accuracy (with free inner surfaces it would not be: its stress would pull on them)."""
     boundary = np.unique(template.facets)
     matrix = np.array([[1.1, 0.05, 0.0], [0.0, 0.9, 0.1], [0.02, 0.0, 1.05]])
     carry = PseudoElasticCarry(template.points, template.cells, boundary)
@@ -120,7 +120,7 @@ def test_a_subject_with_other_proportions(template, builtin_model_path, shared_d
     out = shared_dir / "proportions_model"
     assert main(["build", "--subject", str(take), "--correspondence", str(pairs), "--model",
                  str(builtin_model_path), "--out", str(out)]) == 0
-    model, points, quality = check_valid(out, template)
+    model, _, quality = check_valid(out, template)
     record = json.loads((out / "subject.json").read_text())
     assert record["markers_over_openings"] == ["eyelid_left", "eyelid_right"]
     assert record["residual_rms_mm"] <= 1.0
@@ -178,7 +178,7 @@ def test_a_scan_with_an_open_border_in_centimetres(template, builtin_model_path,
     out = shared_dir / "front_model"
     assert main(["build", "--surface", str(scan), "--landmarks", str(landmark_file), "--units", "cm",
                  "--model", str(builtin_model_path), "--out", str(out)]) == 0
-    model, new_points, quality = check_valid(out, template)
+    model, _, quality = check_valid(out, template)
     record = json.loads((out / "subject.json").read_text())
     assert record["residual_rms_mm"] <= 1.5
     assert 0.3 * record["skin_nodes"] < record["skin_nodes_matched"] < record["skin_nodes"]
@@ -206,11 +206,14 @@ def test_bad_scans_are_refused_with_one_message(template, builtin_model_path, sh
         "nan.ply": (meshio.Mesh(nan_points, [("triangle", triangles)]),
                     r"nan\.ply: 1 vertices are not finite \(first: vertex 7\)"),
         "duplicate.ply": (meshio.Mesh(duplicate_points, [("triangle", duplicate_triangles)]),
-                          r"duplicate\.ply: 1 triangles have two corners at the same point \(duplicate vertices; "
-                          r"first: triangle \d+\)"),
+                          (r"duplicate\.ply: 1 triangles have two corners at the same point \(duplicate vertices; "
+                           r"first: triangle \d+\)")),
     }
-    for name, (mesh, _) in cases.items():
-        on_rank_0(lambda: meshio.write(shared_dir / name, mesh))
+
+    def write():
+        for name, (mesh, _) in cases.items():
+            meshio.write(shared_dir / name, mesh)
+    on_rank_0(write)
     for name, (_, message) in cases.items():
         with pytest.raises(SystemExit, match=message):
             main(["build", "--surface", str(shared_dir / name), "--landmarks", str(landmarks),

@@ -209,12 +209,11 @@ def build_subject(args) -> None:
                           landmarks_file=str(pathlib.Path(args.landmarks).resolve()))
             with _naming(args.surface):
                 adaptation = subject.adapt_to_surface(template, scan, landmarks, name=out.name)
-        worst = max(adaptation.distances, key=adaptation.distances.get)
         info = dict(template=str(template_path.resolve()), template_name=template.name, **inputs,
                     residual_rms_mm=adaptation.rms, residual_max_mm=adaptation.max,
                     matching_rounds=adaptation.iterations, seconds=round(time.perf_counter() - began, 2))
         subject.write_adapted_model(adaptation, out, info=info, overwrite=args.overwrite)
-        return subject.summary(adaptation, str(getattr(args, source)))
+        return subject.summary(adaptation, str(getattr(args, source)), template.name)
     log.info("%s", on_rank_0(adapt, MPI.COMM_WORLD))
     if MPI.COMM_WORLD.rank == 0:
         print(out.resolve())

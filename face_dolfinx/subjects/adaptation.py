@@ -47,7 +47,8 @@ from face_dolfinx.model import folder as model_format
 from face_dolfinx.alignment.similarity import AlignmentError, Similarity, align_by_correspondences, read_pair_file, similarity_transform
 from face_dolfinx.model.folder import JawGeometry, ModelArrays
 from face_dolfinx.alignment.surface import SkinSurface
-from .elastic import EquilibriumError, PseudoElasticCarry, deformation_gradients
+from face_dolfinx.equilibrium.solver import EquilibriumError
+from .elastic import PseudoElasticCarry, deformation_gradients
 from .registration import FIXED_WEIGHT, Pairs, SkinRegistration, barycentric_rows, register_skin
 from .warp import RBFWarp, fiber_transform, inverted_tets
 
@@ -431,7 +432,7 @@ def _similarity_json(transform: Similarity) -> dict:
     return dict(scale=transform.scale, rotation=transform.rotation.tolist(), translation=transform.translation.tolist())
 
 
-def summary(adaptation: Adaptation, subject: str) -> str:
+def summary(adaptation: Adaptation, subject: str, template_name: str) -> str:
     """What an adaptation did, in a few lines: residual, mesh quality, muscle volumes, markers
     over openings and those farthest from the template's skin (marker offsets)."""
     record = adaptation.record
@@ -440,14 +441,14 @@ def summary(adaptation: Adaptation, subject: str) -> str:
     volumes = record["muscle_volume_mm3"]
     ratio = {name: v["after"] / v["before"] for name, v in volumes.items() if v["before"] > 0}
     smallest, largest = min(ratio, key=ratio.get), max(ratio, key=ratio.get)
-    lines = [f"adapted {adaptation.model.name} to {subject}: the skin is RMS {adaptation.rms:.3f} mm, max "
-             f"{adaptation.max:.3f} mm ({worst}) from the subject's {len(adaptation.distances)} {what}; "
-             f"{adaptation.iterations} matching rounds, skin stiffness down to "
-             f"{adaptation.registration.stiffness:g} mm^2"
-             f"{'' if adaptation.registration.settled else ' (matches still sliding along the skin)'}",
-             f"  elements: min quality {record['min_quality_before']:.3g} -> {record['min_quality_after']:.3g}, "
-             f"none inverted; pseudo-elastic carry in {record['elastic_load_steps']} load steps, "
-             f"{record['elastic_newton_iterations']} Newton iterations",
+    settling = "" if adaptation.registration.settled else " (matches still sliding along the skin)"
+    lines = [(f"adapted {template_name} to {subject}: the skin is RMS {adaptation.rms:.3f} mm, max "
+              f"{adaptation.max:.3f} mm ({worst}) from the subject's {len(adaptation.distances)} {what}; "
+              f"{adaptation.iterations} matching rounds, skin stiffness down to "
+              f"{adaptation.registration.stiffness:g} mm^2{settling}"),
+             (f"  elements: min quality {record['min_quality_before']:.3g} -> {record['min_quality_after']:.3g}, "
+              f"none inverted; pseudo-elastic carry in {record['elastic_load_steps']} load steps, "
+              f"{record['elastic_newton_iterations']} Newton iterations"),
              f"  muscle volumes x{ratio[smallest]:.2f} ({smallest}) to x{ratio[largest]:.2f} ({largest})"]
     if record.get("markers_over_openings"):
         lines.append(f"  over an opening of the skin (shape nothing): {', '.join(record['markers_over_openings'])}")

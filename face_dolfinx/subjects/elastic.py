@@ -19,7 +19,6 @@ command runs it on rank 0, as all of subject adaptation, which is a one-off step
 from __future__ import annotations
 
 from dataclasses import dataclass
-import logging
 
 from mpi4py import MPI
 import numpy as np
@@ -28,9 +27,7 @@ from dolfinx import fem
 from dolfinx import mesh as dolfinx_mesh
 
 import forms
-from face_dolfinx.equilibrium.solver import EquilibriumError, InversionGuard, QuasistaticSolver
-
-log = logging.getLogger(__name__)
+from face_dolfinx.equilibrium.solver import InversionGuard, QuasistaticSolver
 
 SHEAR_MODULUS = 1.0      # arbitrary units: only the ratio to the bulk modulus shapes the result
 POISSON_RATIO = 0.3
