@@ -121,22 +121,43 @@ def test_subject_from_a_capture(template, builtin_model_path, shared_dir):
     assert info["residual_max_mm"] < 1e-4 and info["subject_capture"] == str(take.resolve())
 
 
-def test_a_warp_that_inverts_tets_is_refused(template, builtin_model_path, shared_dir):
-    """One marker 20 mm inside the face pulls the skin through the flesh: refused, nothing written."""
+def pushed_capture(template, shared_dir, name, marker, depth):
+    """The template's sites with one marker moved ``depth`` mm into the face (along the skin's
+    inward normal; negative: out of it), as a capture, with its correspondence file."""
     names, sites, correspondence = user_sites(template)
     skin = template.skin()
     triangle = skin.closest(sites)[0]
+    index = names.index(marker)
     pushed = sites.copy()
-    pushed[5] -= 20.0 * skin.triangle_normals[triangle[5]]
-    take = shared_dir / "pushed.trc"
+    pushed[index] -= depth * skin.triangle_normals[triangle[index]]
+    take = shared_dir / f"{name}.trc"
     on_rank_0(lambda: write_capture(Capture(names, pushed[None], 60.0), take))
-    pairs = write_correspondence(shared_dir / "pushed.toml", correspondence)
+    return take, write_correspondence(shared_dir / f"{name}.toml", correspondence), pushed[index]
+
+
+def test_a_landmark_deep_inside_the_face_gives_a_valid_model(template, builtin_model_path, shared_dir):
+    """The upper lip's landmark 20 mm inside the face: the skin follows it there (a free-space
+    warp inverted tets here), the flesh is carried along without inverting a tet."""
+    take, pairs, target = pushed_capture(template, shared_dir, "pushed", "M05", 20.0)
     out = shared_dir / "pushed_model"
-    with pytest.raises(SystemExit, match=r"pushed\.trc: the warp inverts \d+ of \d+ tetrahedra"):
+    assert main(["build", "--subject", str(take), "--correspondence", str(pairs), "--model",
+                 str(builtin_model_path), "--out", str(out)]) == 0
+    model, _ = check_is_a_valid_model(out, template)
+    record = json.loads((out / "subject.json").read_text())
+    assert record["markers"]["M05"]["skin_distance_mm"] < 1.0
+    assert np.linalg.norm(model.landmarks["upper_lip_center"] - to_template(out).apply(target)) < 1.0
+    assert record["min_quality_after"] > 0.01
+
+
+def test_a_marker_off_the_face_is_refused(template, builtin_model_path, shared_dir):
+    """A marker 60 mm in front of the skin cannot be matched: refused, naming it, nothing written."""
+    take, pairs, _ = pushed_capture(template, shared_dir, "stray", "M20", -60.0)
+    out = shared_dir / "stray_model"
+    with pytest.raises(SystemExit, match=r"stray\.trc: markers that cannot be matched to the skin: M20 \(\d+\.\d mm\)"):
         main(["build", "--subject", str(take), "--correspondence", str(pairs), "--model",
               str(builtin_model_path), "--out", str(out)])
     MPI.COMM_WORLD.barrier()
-    assert not [p for p in shared_dir.iterdir() if "pushed_model" in p.name]
+    assert not [p for p in shared_dir.iterdir() if "stray_model" in p.name]
 
 
 def write_scan(template, path, subject, units_per_mm=1.0):
@@ -161,10 +182,9 @@ def write_scan(template, path, subject, units_per_mm=1.0):
 
 
 def test_subject_from_a_surface_scan(template, builtin_model_path, shared_dir):
-    """An OBJ of the puffed subject's face. The skin nodes matched to the scan are control points
-    the warp puts on it exactly; the few left out (next to a landmark, closer than half an edge)
-    are interpolated across about 4 mm, missing the puff's curvature (3 mm / (15 mm)^2) by at most
-    0.013 x 4^2 / 2 = 0.1 mm. Nodes beyond the scan's border are not matched and not checked."""
+    """An OBJ of the puffed subject's face. The registered skin lies on the scan wherever the scan
+    goes on (nodes whose closest scan point is on the scan's open border are beyond it and not
+    checked); the landmarks land on their subject points."""
     scan, landmarks = write_scan(template, shared_dir / "face.obj", puffed_subject)
     out = shared_dir / "scan_model"
     assert main(["build", "--surface", str(scan), "--landmarks", str(landmarks), "--model",
@@ -172,10 +192,15 @@ def test_subject_from_a_surface_scan(template, builtin_model_path, shared_dir):
     model, points = check_is_a_valid_model(out, template)
     frame = to_template(out)
     surface = meshio.read(scan)
-    scan_surface = SkinSurface(frame.apply(surface.points), surface.cells_dict["triangle"])
+    triangles = surface.cells_dict["triangle"]
+    scan_surface = SkinSurface(frame.apply(surface.points), triangles)
     skin_points, _ = model.skin_surface()
     triangle, barycentric, _, distance = scan_surface.closest(skin_points)
-    inside = np.all(barycentric > 1e-9, axis=1)  # closest point inside a scan triangle, not on an edge
+    edges, counts = np.unique(np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0,
+                              return_counts=True)
+    border = np.unique(edges[counts == 1])
+    on_edge = barycentric <= 1e-9
+    inside = ~(on_edge.any(axis=1) & np.all(np.isin(triangles[triangle], border) | on_edge, axis=1))
     assert inside.mean() > 0.8
     assert distance[inside].max() < 0.1
     assert np.sqrt(np.mean(distance[inside] ** 2)) < 0.01
@@ -197,7 +222,9 @@ def test_a_scan_in_centimetres(template, builtin_model_path, shared_dir):
     assert not out.exists()
     assert main(arguments + ["--units", "cm"]) == 0
     _, points = check_is_a_valid_model(out, template)
-    np.testing.assert_allclose(points, (to_template(out) @ LAB).apply(template.points @ STRETCH.T), atol=1e-4)
+    # Matched to closest scan points, skin nodes may slide along the scan by what the matching
+    # leaves unsettled (AFFINE_SETTLED_MM); everything else follows them.
+    np.testing.assert_allclose(points, (to_template(out) @ LAB).apply(template.points @ STRETCH.T), atol=1e-2)
 
 
 def test_surface_input_errors(template, builtin_model_path, shared_dir):

@@ -187,6 +187,7 @@ def build_subject(args) -> None:
     template_path = pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets)
 
     def adapt():
+        began = time.perf_counter()
         if out.exists() and not args.overwrite:  # before the work, not after
             raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
         template = read_model_arrays(template_path)
@@ -208,16 +209,11 @@ def build_subject(args) -> None:
                           landmarks_file=str(pathlib.Path(args.landmarks).resolve()))
             with _naming(args.surface):
                 adaptation = subject.adapt_to_surface(template, scan, landmarks, name=out.name)
-        worst = max(adaptation.distances, key=adaptation.distances.get)
         info = dict(template=str(template_path.resolve()), template_name=template.name, **inputs,
                     residual_rms_mm=adaptation.rms, residual_max_mm=adaptation.max,
-                    matching_rounds=adaptation.iterations)
+                    matching_rounds=adaptation.iterations, seconds=round(time.perf_counter() - began, 2))
         subject.write_adapted_model(adaptation, out, info=info, overwrite=args.overwrite)
-        what = "markers" if args.subject else "skin nodes inside the scan"
-        return (f"adapted {template.name} to {getattr(args, source)}: the skin is RMS {adaptation.rms:.3f} mm, "
-                f"max {adaptation.max:.3f} mm ({worst}) from the subject's {len(adaptation.distances)} {what}; "
-                f"{adaptation.iterations} matching rounds"
-                f"{'' if adaptation.record['settled'] else ' (matches still sliding along the skin)'}")
+        return subject.summary(adaptation, str(getattr(args, source)), template.name)
     log.info("%s", on_rank_0(adapt, MPI.COMM_WORLD))
     if MPI.COMM_WORLD.rank == 0:
         print(out.resolve())

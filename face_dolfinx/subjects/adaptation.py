@@ -1,27 +1,33 @@
-"""Subject adaptation: a template face model warped onto one subject (sifakis2005 section 3).
+"""Subject adaptation: a template face model carried onto one subject (sifakis2005 section 3).
 
-The template (the built-in face, or any model folder) is carried onto the subject by one smooth
-map of 3-space, a radial-basis-function warp (``warp.RBFWarp``): flesh nodes, and with them the
-skin, the bone attachment surfaces and the muscles' cells, move by it; fiber directions by its
-Jacobian; the jaw's condyles, the marker sites and the landmarks likewise. Two kinds of subject:
+Three steps, each with its own module:
+
+1. The subject is moved rigidly (no scaling: the subject keeps its size) onto the template's
+   landmarks, so the new model is in the template's frame: Y up, the same origin and facing.
+2. The template's skin is registered onto the subject (``registration.register_skin``): a global
+   affine map, then a smooth non-rigid displacement, landmarks held to their subject points and
+   the other subject points matched to the closest skin, round after round.
+3. Everything else follows the skin by a pseudo-elastic solve on the template mesh with the
+   registered skin prescribed (``elastic.PseudoElasticCarry``, ``carry_model``): flesh nodes and
+   with them the bone attachment surfaces and the muscles' cells; fibers by each cell's
+   deformation gradient; landmarks and marker sites at their places on the skin triangles; the
+   jaw's condyles and the muscles' geometry points by a smooth map fitted to the nodes' motion.
+   The result is refused (SubjectError) if a tetrahedron inverts or flattens.
+
+Two kinds of subject:
 
 ``adapt_to_markers``  the neutral frame of the subject's capture plus correspondences (>= 6 capture
-    markers named by template landmark). The warp takes each template landmark to its marker and
-    every other marker's closest template skin point to that marker, so the new skin passes
-    through all of them. Which template point is "closest" depends on the warp, so the two are
-    found together: warp by the landmarks, match each marker to its closest point on the warped
-    skin and pull it back to the template, warp again, until the matches settle.
-``adapt_to_surface``  a scan of the subject's face (triangles) plus landmark positions on it. The
-    same iteration with the template's skin nodes as the points matched, to their closest points
-    on the scan; matches on the scan's open border are dropped (the scan may end before the
-    template's skin does, and border matches would drag the skin along the edge).
-
-The subject is first moved rigidly (no scaling: the subject keeps its size) onto the template's
-landmarks, so the new model is in the template's frame: Y up, the same origin and facing. The
-result is refused (SubjectError) if the warp inverts or flattens any tetrahedron.
+    markers named by template landmark). Every other marker is matched to its closest skin
+    point, except where that point is on the rim of an opening of the skin (a marker on an
+    eyelid over the template's eye opening): such a marker shapes nothing and is reported as
+    over an opening.
+``adapt_to_surface``  a scan of the subject's face (triangles) plus landmark positions on it. Each
+    template skin node is matched to its closest scan point; matches on the scan's open border
+    are dropped (the scan may end before the template's skin does, and border matches would drag
+    the skin along the edge), and so are matches farther than MAX_SURFACE_MATCH_MM.
 
 Everything works on plain arrays (``face_dolfinx.model.folder.ModelArrays``, read by
-``read_model_arrays``); ``write_adapted_model`` writes the result.
+``read_model_arrays``) on one process; ``write_adapted_model`` writes the result.
 """
 from __future__ import annotations
 
@@ -32,6 +38,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 from mpi4py import MPI
 
 from face_dolfinx.files import atomic_directory
@@ -39,6 +47,9 @@ from face_dolfinx.model import folder as model_format
 from face_dolfinx.alignment.similarity import AlignmentError, Similarity, align_by_correspondences, read_pair_file, similarity_transform
 from face_dolfinx.model.folder import JawGeometry, ModelArrays
 from face_dolfinx.alignment.surface import SkinSurface
+from face_dolfinx.equilibrium.solver import EquilibriumError
+from .elastic import PseudoElasticCarry, deformation_gradients
+from .registration import FIXED_WEIGHT, Pairs, SkinRegistration, barycentric_rows, register_skin
 from .warp import RBFWarp, fiber_transform, inverted_tets
 
 
@@ -46,31 +57,45 @@ MIN_LANDMARKS = 6              # as for aligning a capture: 7 unknowns and a mar
 # A subject this much smaller or larger than the template (scale of the landmarks' best
 # similarity) is a unit mistake, not a face.
 SUBJECT_SCALE_RANGE = (0.5, 2.0)
-MAX_ITERATIONS = 10            # closest-point matching rounds
-SETTLED_MM = 0.01              # matches moving less than this have settled
-MAX_SURFACE_CONTROLS = 1000    # template skin nodes matched to a scan (RBF solve cost ~ n^3)
-# The thin-plate spline is smooth (C1) at its control points; the biharmonic kernel r has a cone
-# there, which the flat skin triangles between warped nodes cut off: on the 5K face it left the
-# skin twice as far from a subject's markers (0.41 against 0.22 mm for a 3 mm cheek bump).
+# mm: a marker farther than this from the registered skin is not on this face (a stray marker,
+# a marker of another subject, wrong units of one column): refused with its name.
+MAX_MARKER_DISTANCE_MM = 10.0
+# mm: a skin node's closest scan point farther than this is not its counterpart (the scan is
+# another part of the head there); such a match is dropped.
+MAX_SURFACE_MATCH_MM = 20.0
+# Flesh nodes whose motion defines the smooth map for points off the mesh (the jaw's condyles,
+# muscle geometry): enough to follow the elastic solve's large-scale motion, cheap to fit.
+FAR_FIELD_NODES = 400
+# Stiffer registrations tried when the flesh cannot follow the softest one.
+MAX_STIFFER_STEPS = 3
+# The thin-plate spline reproduces an affine motion exactly, and its fitted map is smooth (C1)
+# at its control points.
 WARP_KERNEL = "thin_plate"
 SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off", ".vtk", ".vtu")
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 
 
 class SubjectError(ValueError):
-    """Subject inputs that can't be used, or a warp that would break the mesh; the message says which."""
+    """Subject inputs that can't be used, or an adaptation that would break the mesh; the message says which."""
+
+
+class CarryError(SubjectError):
+    """The flesh cannot be carried onto a registered skin (no equilibrium)."""
 
 
 @dataclass
 class Adaptation:
-    """A warped model and how well it fits the subject."""
+    """An adapted model and how well it fits the subject."""
 
     model: ModelArrays
-    warp: RBFWarp
+    registration: SkinRegistration
     to_template: Similarity               # rigid: subject input frame -> template (and new model) frame
-    distances: dict[str, float]           # subject point -> new skin (mm), by name
-    iterations: int
+    distances: dict[str, float]           # subject point -> new skin (mm), by name; the residual
     record: dict                          # what subject.json holds
+
+    @property
+    def iterations(self) -> int:
+        return self.registration.rounds
 
     @property
     def rms(self) -> float:
@@ -86,10 +111,11 @@ class Adaptation:
 # ---------------------------------------------------------------------------------------------
 def adapt_to_markers(template: ModelArrays, neutral, names, correspondence: dict[str, str], *,
                      name: str) -> Adaptation:
-    """The template warped so that its skin passes through every marker of the neutral frame.
+    """The template carried onto the subject so that its skin passes through the markers of the
+    neutral frame (those over an opening of the skin excepted).
 
     ``neutral`` (n, 3) and ``names`` (n,) are the subject's markers (every one present: each
-    becomes a control point); ``correspondence`` maps capture markers to template landmarks.
+    shapes the subject); ``correspondence`` maps capture markers to template landmarks.
     """
     neutral = np.asarray(neutral, dtype=np.float64)
     names = [str(n) for n in names]
@@ -109,27 +135,39 @@ def adapt_to_markers(template: ModelArrays, neutral, names, correspondence: dict
     _check_scale(neutral[landmark_rows], np.array([template.landmarks[lm] for _, lm in pairs]), "capture")
     subject = rigid.apply(neutral)
 
-    # Landmarks are fixed pairs; every other marker is matched to the template skin.
-    fixed_template = np.array([template.landmarks[landmark] for _, landmark in pairs])
-    fixed_subject = subject[landmark_rows]
-    free = [i for i in range(len(names)) if i not in set(landmark_rows)]
-    warp, iterations, settled = _match_and_warp(
-        template, fixed_template, fixed_subject,
-        match=lambda warped_skin: _pull_back(template, warped_skin, subject[free]))
-    new = warp_model(template, warp, name=name)
-    distances = new.skin().closest(subject)[3]
+    skin_points, triangles = template.skin_surface()
+    template_skin = SkinSurface(skin_points, triangles)
+    openings = _opening_edges(triangles)
+    fixed = _landmark_pairs(template_skin, np.array([template.landmarks[lm] for _, lm in pairs]),
+                            subject[landmark_rows])
+    free = np.array([i for i in range(len(names)) if i not in set(landmark_rows)], dtype=int)
+
+    def match(current: SkinSurface) -> Pairs:
+        triangle, barycentric, over_opening = _closest_or_opening(current, openings, subject[free])
+        on_skin = ~over_opening
+        return Pairs(barycentric_rows(triangles, triangle[on_skin], barycentric[on_skin], len(skin_points)),
+                     subject[free][on_skin])
+
+    registration = _register(skin_points, triangles, fixed, match)
+    new, measures, registration = _carry(template, registration, name)
+    new_skin = SkinSurface(new.points[template.skin_nodes], triangles)
+    distances = new_skin.closest(subject)[3]
+    over_opening = _closest_or_opening(new_skin, openings, subject)[2]
+    over_opening[landmark_rows] = False
+    far = [f"{names[i]} ({distances[i]:.1f} mm)" for i in np.flatnonzero(distances > MAX_MARKER_DISTANCE_MM)]
+    if far:
+        raise SubjectError(f"markers that cannot be matched to the skin: {', '.join(far)} from the adapted "
+                           f"skin (more than {MAX_MARKER_DISTANCE_MM:g} mm): are they on this face, and "
+                           f"are the correspondences right?")
+    offsets = skin.closest(subject)[3]
+    on_skin = [n for i, n in enumerate(names) if not over_opening[i]]
     record = dict(method="capture markers", correspondence=dict(correspondence), to_template=_similarity_json(rigid),
-                  iterations=iterations, settled=settled,
-                  markers={n: dict(subject=subject[i].tolist(), skin_distance_mm=float(distances[i]))
+                  iterations=registration.rounds, settled=registration.settled, **measures,
+                  markers_over_openings=[n for i, n in enumerate(names) if over_opening[i]],
+                  markers={n: dict(subject=subject[i].tolist(), skin_distance_mm=float(distances[i]),
+                                   template_skin_distance_mm=float(offsets[i]), over_opening=bool(over_opening[i]))
                            for i, n in enumerate(names)})
-    return Adaptation(new, warp, rigid, dict(zip(names, distances.tolist())), iterations, record)
-
-
-def _pull_back(template: ModelArrays, warped_skin: SkinSurface, subject_points):
-    """Template skin points whose warped images are closest to ``subject_points``, and those targets."""
-    triangle, barycentric, _, _ = warped_skin.closest(subject_points)
-    corners = template.points[warped_skin.triangles[triangle]]
-    return np.einsum("nk,nkd->nd", barycentric, corners), subject_points
+    return Adaptation(new, registration, rigid, {n: float(distances[row[n]]) for n in on_skin}, record)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -137,7 +175,7 @@ def _pull_back(template: ModelArrays, warped_skin: SkinSurface, subject_points):
 # ---------------------------------------------------------------------------------------------
 def adapt_to_surface(template: ModelArrays, scan: SurfaceScan, landmarks: dict[str, np.ndarray], *,
                      name: str) -> Adaptation:
-    """The template warped so that its skin lies on a subject's face surface.
+    """The template carried onto the subject so that its skin lies on the subject's face surface.
 
     ``landmarks`` maps template landmark names to points of the surface (its frame, mm).
     """
@@ -156,53 +194,107 @@ def adapt_to_surface(template: ModelArrays, scan: SurfaceScan, landmarks: dict[s
     _check_scale(subject_landmarks, template_landmarks, "surface")
     rigid = similarity_transform(subject_landmarks, template_landmarks, allow_scale=False)
     surface = SkinSurface(rigid.apply(scan.points), scan.triangles)
-    border = _border_nodes(scan.triangles)
+    scan_border = _border_nodes(scan.triangles)
     fixed_subject = rigid.apply(subject_landmarks)
-    controls = _surface_controls(template, template_landmarks)
+    skin_points, triangles = template.skin_surface()
+    fixed = _landmark_pairs(SkinSurface(skin_points, triangles), template_landmarks, fixed_subject)
+    node_rows = sp.identity(len(skin_points), format="csr")  # a pair per skin node
 
     def within(points):
-        """Closest scan points of ``points`` and which of them are inside the scan, not on its border."""
+        """Closest scan points of ``points``, their distances, and which are inside the scan."""
         triangle, barycentric, closest, distance = surface.closest(points)
-        # Closest at a border node or on a border edge: the point is beyond where the scan ends.
-        on_edge = barycentric <= 1e-9
-        at_border = on_edge.any(axis=1) & np.all(np.isin(scan.triangles[triangle], border) | on_edge, axis=1)
-        return closest, distance, ~at_border
+        inside = ~_at_border(scan.triangles, scan_border, triangle, barycentric)
+        return closest, distance, inside
 
-    def match(warped_skin):
-        closest, _, inside = within(warped_skin.points[controls])
-        return template.points[controls[inside]], closest[inside]
+    def match(current: SkinSurface) -> Pairs:
+        closest, distance, inside = within(current.points)
+        keep = inside & (distance <= MAX_SURFACE_MATCH_MM)
+        return Pairs(node_rows[np.flatnonzero(keep)], closest[keep])
 
-    warp, iterations, settled = _match_and_warp(template, template_landmarks, fixed_subject, match)
-    new = warp_model(template, warp, name=name)
+    registration = _register(skin_points, triangles, fixed, match)
+    new, measures, registration = _carry(template, registration, name)
     skin_nodes = template.skin_nodes
     _, distances, covered = within(new.points[skin_nodes])
+    covered &= distances <= MAX_SURFACE_MATCH_MM
     names = [f"skin_node_{n}" for n in skin_nodes[covered]]
-    landmark_distances = np.linalg.norm(warp.apply(template_landmarks) - fixed_subject, axis=1)
-    record = dict(method="surface", to_template=_similarity_json(rigid), iterations=iterations, settled=settled,
+    landmark_distances = np.linalg.norm(np.array([new.landmarks[lm] for lm in known]) - fixed_subject, axis=1)
+    record = dict(method="surface", to_template=_similarity_json(rigid), iterations=registration.rounds,
+                  settled=registration.settled, **measures,
                   skin_nodes_matched=int(covered.sum()), skin_nodes=len(skin_nodes),
                   landmarks={lm: dict(subject=p.tolist(), residual_mm=float(d))
                              for lm, p, d in zip(known, fixed_subject, landmark_distances)})
-    return Adaptation(new, warp, rigid, dict(zip(names, distances[covered].tolist())), iterations, record)
+    return Adaptation(new, registration, rigid, dict(zip(names, distances[covered].tolist())), record)
 
 
-def _surface_controls(template: ModelArrays, landmark_points) -> np.ndarray:
-    """Template skin nodes to match to the scan: evenly spread, at most MAX_SURFACE_CONTROLS, none
-    on top of a landmark (two control points that close with different targets would fold the warp)."""
-    nodes = template.skin_nodes
-    edges = template.skin().triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    spacing = np.median(np.linalg.norm(template.points[edges[:, 0]] - template.points[edges[:, 1]], axis=1))
-    near = np.min(np.linalg.norm(template.points[nodes][:, None] - landmark_points[None], axis=2), axis=1)
-    nodes = nodes[near > 0.5 * spacing]
-    if len(nodes) <= MAX_SURFACE_CONTROLS:
-        return nodes
-    # Farthest-point sampling: each pick is the node farthest from all earlier picks.
-    points = template.points[nodes]
-    chosen = [0]
-    distance = np.linalg.norm(points - points[0], axis=1)
-    for _ in range(MAX_SURFACE_CONTROLS - 1):
-        chosen.append(int(np.argmax(distance)))
-        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
-    return nodes[np.sort(chosen)]
+def _landmark_pairs(skin: SkinSurface, template_points, targets) -> Pairs:
+    """Landmark pairs: template points (at their closest skin points) to their subject ``targets``."""
+    triangle, barycentric, _, _ = skin.closest(template_points)
+    rows = barycentric_rows(skin.triangles, triangle, barycentric, len(skin.points))
+    return Pairs(rows, np.asarray(targets, dtype=np.float64), weight=FIXED_WEIGHT)
+
+
+def _register(skin_points, triangles, fixed: Pairs, match) -> SkinRegistration:
+    registration = register_skin(skin_points, triangles, fixed, match)
+    if registration.folded.size:
+        raise SubjectError(f"registering the skin onto the subject folds {registration.folded.size} skin "
+                           f"triangles over: the subject points cross over; check the correspondences "
+                           f"and that the points are on this face")
+    return registration
+
+
+def _carry(template: ModelArrays, registration: SkinRegistration, name: str):
+    """``carry_model`` of the registered skin; where the flesh cannot follow it (no equilibrium:
+    the skin squeezes a cell between two of its layers, at a lip), of the registration's stiffer
+    steps, up to MAX_STIFFER_STEPS, the latest first. Returns the model, its measures and the
+    registration used."""
+    candidates = [(registration.stiffness, registration.positions)] + registration.stiffer[:MAX_STIFFER_STEPS]
+    for attempt, (stiffness, positions) in enumerate(candidates):
+        try:
+            new, measures = carry_model(template, positions, name=name)
+        except CarryError:
+            if attempt == len(candidates) - 1:
+                raise
+            continue
+        measures["skin_stiffness_mm2"] = stiffness
+        return new, measures, replace(registration, positions=positions, stiffness=stiffness)
+
+
+def _at_border(triangles, border, triangle, barycentric) -> np.ndarray:
+    """Closest points on a border edge or border node of a surface: beyond where it ends."""
+    on_edge = barycentric <= 1e-9
+    return on_edge.any(axis=1) & np.all(np.isin(triangles[triangle], border) | on_edge, axis=1)
+
+
+def _opening_edges(triangles) -> list[np.ndarray]:
+    """The border edges (k, 2) of each opening of a surface (eyes, mouth): every border loop but
+    the longest, which is the surface's outer edge."""
+    edges = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    border = unique[counts == 1]
+    if not len(border):
+        return []
+    nodes, local = np.unique(border, return_inverse=True)
+    graph = sp.csr_matrix((np.ones(len(border)), (local.reshape(-1, 2)[:, 0], local.reshape(-1, 2)[:, 1])),
+                          shape=(len(nodes), len(nodes)))
+    _, loop_of_node = connected_components(graph, directed=False)
+    loop_of_edge = loop_of_node[local.reshape(-1, 2)[:, 0]]
+    loops = [border[loop_of_edge == k] for k in range(loop_of_node.max() + 1)]
+    loops.sort(key=len)
+    return loops[:-1]
+
+
+def _closest_or_opening(skin: SkinSurface, openings: list[np.ndarray], query):
+    """Closest skin triangles and barycentric coordinates of ``query``, and which of the points
+    are over an opening instead: closer to the opening's cap (a fan of triangles from the rim to
+    its centroid, a stand-in for a closed eyelid or closed lips) than to any skin triangle."""
+    triangle, barycentric, _, distance = skin.closest(query)
+    over = np.zeros(len(query), dtype=bool)
+    for rim in openings:
+        centre = skin.points[np.unique(rim)].mean(axis=0)
+        cap = SkinSurface(np.vstack([skin.points, centre]),
+                          np.column_stack([rim, np.full(len(rim), len(skin.points))]))
+        over |= cap.closest(query)[3] < distance
+    return triangle, barycentric, over
 
 
 def _border_nodes(triangles) -> np.ndarray:
@@ -213,81 +305,110 @@ def _border_nodes(triangles) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------
-# The warp and the warped model
+# The template carried along
 # ---------------------------------------------------------------------------------------------
-def _match_and_warp(template: ModelArrays, fixed_template, fixed_subject, match):
-    """Alternate matching and warping until the matches settle.
+def carry_model(template: ModelArrays, skin_targets: np.ndarray, *, name: str) -> tuple[ModelArrays, dict]:
+    """Everything in the template carried along with its skin moved to ``skin_targets`` (positions
+    of ``template.skin_nodes``), and the measures of what that did to the mesh.
 
-    ``match(warped_skin)`` returns (template points, subject targets) for the current warp; the
-    fixed pairs (landmarks) are always controls. The matches have settled when no template point
-    and no target moves by SETTLED_MM; the rounds are capped at MAX_ITERATIONS, as sliding along
-    the skin can settle slowly while the surface itself no longer changes. Returns the warp, the
-    number of rounds and whether the matches settled.
+    The best affine map of the skin moves every node first (the reference of the elastic solve);
+    the rest of the skin's motion is spread into the flesh by the pseudo-elastic solve
+    (``elastic.PseudoElasticCarry``). Fibers follow each cell's deformation gradient; landmarks and
+    marker sites stay at their places on the skin triangles; points off the mesh (muscle
+    geometry, the jaw's condyles) follow a smooth map fitted to the flesh nodes' motion.
+    SubjectError if no equilibrium is found or a tet inverts or flattens.
     """
     skin_nodes = template.skin_nodes
-    warp = RBFWarp.fit(fixed_template, fixed_subject, kernel=WARP_KERNEL)
-    previous = None
-    for iteration in range(1, MAX_ITERATIONS + 1):
-        warped = np.zeros_like(template.points)
-        warped[skin_nodes] = warp.apply(template.points[skin_nodes])
-        pairs = np.hstack(match(template.skin(warped)))
-        if previous is not None and previous.shape == pairs.shape and \
-                np.max(np.linalg.norm((pairs - previous).reshape(-1, 3), axis=1), initial=0.0) < SETTLED_MM:
-            return warp, iteration, True
-        previous = pairs
-        try:
-            warp = RBFWarp.fit(np.vstack([fixed_template, pairs[:, :3]]), np.vstack([fixed_subject, pairs[:, 3:]]),
-                               kernel=WARP_KERNEL)
-        except ValueError as error:  # repeated template points: two subject points claim one spot
-            raise SubjectError(f"two subject points map onto the same template point ({error}); are two "
-                               f"markers at the same place, or a marker far off the face?") from None
-    return warp, MAX_ITERATIONS, False
-
-
-def warp_model(template: ModelArrays, warp: RBFWarp, *, name: str) -> ModelArrays:
-    """Everything in the template carried through ``warp``; SubjectError if a tet inverts or flattens."""
-    points = warp.apply(template.points)
+    affine = _affine_fit(template.points[skin_nodes], skin_targets)
+    if np.linalg.det(affine[:, :3]) <= 0:
+        raise SubjectError("the subject points turn the template's skin inside out (the best affine map "
+                           "of the skin is a reflection): check the correspondences (left and right?)")
+    reference = template.points @ affine[:, :3].T + affine[:, 3]
+    carry = PseudoElasticCarry(reference, template.cells, skin_nodes)
+    try:
+        points, report = carry.solve(skin_targets - reference[skin_nodes])
+    except EquilibriumError as error:
+        raise CarryError(f"the template cannot be carried onto the registered skin ({error}): the skin "
+                           f"registration folds or pulls the skin through the flesh; check the "
+                           f"correspondences and that the markers are on this face") from None
     bad = inverted_tets(points, template.cells)
     if bad.size:
-        raise SubjectError(f"the warp inverts {bad.size} of {len(template.cells)} tetrahedra (e.g. cell {bad[0]}): "
-                           f"the subject points pull the template too far or cross over; check the "
-                           f"correspondences and that the markers are on this face")
+        raise SubjectError(f"carrying the template inverts {bad.size} of {len(template.cells)} tetrahedra (e.g. "
+                           f"cell {bad[0]}): the subject points pull the template too far or cross over; "
+                           f"check the correspondences and that the markers are on this face")
+    _, quality_before = model_format.tet_volumes_and_quality(template.points[template.cells])
     _, quality = model_format.tet_volumes_and_quality(points[template.cells])
     if quality.min() < model_format.DEGENERATE_QUALITY:
-        raise SubjectError(f"the warp flattens {np.sum(quality < model_format.DEGENERATE_QUALITY)} tetrahedra "
-                           f"(quality {quality.min():.2g} < {model_format.DEGENERATE_QUALITY:g}, cell "
+        raise SubjectError(f"carrying the template flattens {np.sum(quality < model_format.DEGENERATE_QUALITY)} "
+                           f"tetrahedra (quality {quality.min():.2g} < {model_format.DEGENERATE_QUALITY:g}, cell "
                            f"{int(np.argmin(quality))}); the subject points pull the template too far")
-    centres = template.points[template.cells].mean(axis=1)
+    gradients = deformation_gradients(template.points, points, template.cells)
+    far_field = RBFWarp.fit(*(p[_spread_nodes(template.points, FAR_FIELD_NODES)] for p in (template.points, points)),
+                            kernel=WARP_KERNEL)
+    volumes_before = _muscle_volumes(template, template.points)
     muscles = []
     for muscle in template.muscles:
         geometry = {}
         for key, value in muscle.geometry.items():
             if key == "axis":  # a direction at the sphincter's centre, its length kept
-                at = muscle.geometry.get("center", centres[muscle.cells].mean(axis=0))
-                geometry[key] = np.linalg.norm(value) * fiber_transform(warp, at[None], value[None])[0]
+                centres = template.points[template.cells[muscle.cells]].mean(axis=1)
+                at = muscle.geometry.get("center", centres.mean(axis=0))
+                geometry[key] = np.linalg.norm(value) * fiber_transform(far_field, at[None], value[None])[0]
             else:
-                geometry[key] = warp.apply(value)
-        fiber = fiber_transform(warp, centres[muscle.cells], muscle.fiber) if len(muscle.cells) else muscle.fiber
+                geometry[key] = far_field.apply(value)
+        fiber = np.einsum("nij,nj->ni", gradients[muscle.cells], muscle.fiber) if len(muscle.cells) else muscle.fiber
+        if len(muscle.cells):
+            fiber = fiber / np.linalg.norm(fiber, axis=1, keepdims=True)
         muscles.append(replace(muscle, fiber=fiber, geometry=geometry))
     jaw = template.jaw
-    slide = fiber_transform(warp, jaw.midpoint[None], jaw.v[None])[0]
-    stretch = _stretch(warp, jaw.midpoint, jaw.v)
-    new_jaw = JawGeometry.from_condyles(warp.apply(jaw.condyle_right), warp.apply(jaw.condyle_left), slide,
+    slide = fiber_transform(far_field, jaw.midpoint[None], jaw.v[None])[0]
+    stretch = _stretch(far_field, jaw.midpoint, jaw.v)
+    new_jaw = JawGeometry.from_condyles(far_field.apply(jaw.condyle_right), far_field.apply(jaw.condyle_left), slide,
                                         jaw.track_length * stretch, jaw.max_opening_sine)
     new = replace(template, name=name, points=points, muscles=muscles, jaw=new_jaw, info={})
-    skin = new.skin()
-    new.markers = _onto(skin, warp, template.markers)
-    new.landmarks = _onto(skin, warp, template.landmarks)
-    return new
+    new.markers = _on_skin(template, points, template.markers)
+    new.landmarks = _on_skin(template, points, template.landmarks)
+    volumes_after = _muscle_volumes(new, points)
+    measures = dict(
+        min_quality_before=float(quality_before.min()), min_quality_after=float(quality.min()),
+        muscle_volume_mm3={m.name: dict(before=volumes_before[i], after=volumes_after[i])
+                           for i, m in enumerate(template.muscles)},
+        elastic_newton_iterations=report.newton_iterations, elastic_load_steps=report.load_steps)
+    return new, measures
 
 
-def _onto(skin: SkinSurface, warp: RBFWarp, sites: dict) -> dict:
-    """Sites carried by the warp and put back on the skin: the warped skin is the flat triangles
-    between warped nodes, a warped skin point is off them by the warp's curvature."""
+def _affine_fit(source, target) -> np.ndarray:
+    """The (3, 4) affine map [A | b] taking ``source`` closest to ``target`` (least squares)."""
+    homogeneous = np.hstack([source, np.ones((len(source), 1))])
+    return np.linalg.lstsq(homogeneous, target, rcond=None)[0].T
+
+
+def _spread_nodes(points, count: int) -> np.ndarray:
+    """``count`` rows of ``points`` spread over them (farthest-point sampling), or all."""
+    if len(points) <= count:
+        return np.arange(len(points))
+    chosen = [0]
+    distance = np.linalg.norm(points - points[0], axis=1)
+    for _ in range(count - 1):
+        chosen.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
+    return np.sort(chosen)
+
+
+def _muscle_volumes(model: ModelArrays, points) -> list[float]:
+    """Each muscle's volume (mm^3): its cells' volumes times the fraction of each it fills."""
+    volumes, _ = model_format.tet_volumes_and_quality(points[model.cells])
+    return [float(np.sum(volumes[m.cells] * m.fraction)) for m in model.muscles]
+
+
+def _on_skin(template: ModelArrays, points, sites: dict) -> dict:
+    """Sites at the same place on the skin triangles (barycentric) over the moved ``points``."""
     if not sites:
         return {}
-    closest = skin.closest(warp.apply(np.array(list(sites.values()))))[2]
-    return dict(zip(sites, closest))
+    skin = template.skin()
+    triangle, barycentric, _, _ = skin.closest(np.array(list(sites.values())))
+    moved = np.einsum("nk,nkd->nd", barycentric, points[skin.triangles[triangle]])
+    return dict(zip(sites, moved))
 
 
 def _stretch(warp: RBFWarp, point, direction) -> float:
@@ -309,6 +430,35 @@ def _check_scale(subject_points, template_points, what: str) -> None:
 
 def _similarity_json(transform: Similarity) -> dict:
     return dict(scale=transform.scale, rotation=transform.rotation.tolist(), translation=transform.translation.tolist())
+
+
+def summary(adaptation: Adaptation, subject: str, template_name: str) -> str:
+    """What an adaptation did, in a few lines: residual, mesh quality, muscle volumes, markers
+    over openings and those farthest from the template's skin (marker offsets)."""
+    record = adaptation.record
+    worst = max(adaptation.distances, key=adaptation.distances.get)
+    what = "markers" if record["method"] == "capture markers" else "skin nodes inside the scan"
+    volumes = record["muscle_volume_mm3"]
+    ratio = {name: v["after"] / v["before"] for name, v in volumes.items() if v["before"] > 0}
+    smallest, largest = min(ratio, key=ratio.get), max(ratio, key=ratio.get)
+    settling = "" if adaptation.registration.settled else " (matches still sliding along the skin)"
+    lines = [(f"adapted {template_name} to {subject}: the skin is RMS {adaptation.rms:.3f} mm, max "
+              f"{adaptation.max:.3f} mm ({worst}) from the subject's {len(adaptation.distances)} {what}; "
+              f"{adaptation.iterations} matching rounds, skin stiffness down to "
+              f"{adaptation.registration.stiffness:g} mm^2{settling}"),
+             (f"  elements: min quality {record['min_quality_before']:.3g} -> {record['min_quality_after']:.3g}, "
+              f"none inverted; pseudo-elastic carry in {record['elastic_load_steps']} load steps, "
+              f"{record['elastic_newton_iterations']} Newton iterations"),
+             f"  muscle volumes x{ratio[smallest]:.2f} ({smallest}) to x{ratio[largest]:.2f} ({largest})"]
+    if record.get("markers_over_openings"):
+        lines.append(f"  over an opening of the skin (shape nothing): {', '.join(record['markers_over_openings'])}")
+    if "markers" in record:
+        offsets = {n: m["template_skin_distance_mm"] for n, m in record["markers"].items()}
+        farthest = sorted(offsets, key=offsets.get, reverse=True)[:3]
+        lines.append("  marker offsets from the template's skin (aligned rigidly): RMS "
+                     f"{np.sqrt(np.mean(np.square(list(offsets.values())))):.1f} mm, largest "
+                     + ", ".join(f"{n} {offsets[n]:.1f} mm" for n in farthest))
+    return "\n".join(lines)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -358,11 +508,21 @@ def read_surface(path, units: str = "mm") -> SurfaceScan:
     if not triangles:
         raise SubjectError(f"{path}: no triangles (cell types: {', '.join(b.type for b in mesh.cells) or 'none'})")
     points = np.asarray(mesh.points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
-        raise SubjectError(f"{path}: points must be finite 3-D coordinates")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise SubjectError(f"{path}: points must be 3-D coordinates, not of shape {points.shape}")
+    not_finite = np.flatnonzero(~np.all(np.isfinite(points), axis=1))
+    if not_finite.size:
+        raise SubjectError(f"{path}: {not_finite.size} vertices are not finite (first: vertex {not_finite[0]})")
     unique, inverse = np.unique(points * _mm_per(units, path), axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
-    return SurfaceScan(path, unique, inverse[np.concatenate(triangles)], inverse)
+    merged = inverse[np.concatenate(triangles)]
+    collapsed = np.flatnonzero((merged[:, 0] == merged[:, 1]) | (merged[:, 1] == merged[:, 2])
+                               | (merged[:, 2] == merged[:, 0]))
+    if collapsed.size:
+        raise SubjectError(f"{path}: {collapsed.size} triangles have two corners at the same point (duplicate "
+                           f"vertices; first: triangle {collapsed[0]}): repair the surface (merge its vertices, "
+                           f"drop the degenerate triangles)")
+    return SurfaceScan(path, unique, merged, inverse)
 
 
 def read_landmark_file(path, scan: SurfaceScan, units: str = "mm") -> dict[str, np.ndarray]:
