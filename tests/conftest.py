@@ -29,3 +29,17 @@ def shared_dir(tmp_path_factory, request):
     mpirun)."""
     folder = tmp_path_factory.mktemp(request.module.__name__.rpartition(".")[2])
     return pathlib.Path(MPI.COMM_WORLD.bcast(str(folder), root=0))
+
+
+@pytest.fixture(scope="module")
+def template(builtin_model_path):
+    """The small built-in face as plain arrays (``read_model_arrays``), for subject adaptation."""
+    from face_dolfinx.model.folder import read_model_arrays
+    return read_model_arrays(builtin_model_path)
+
+
+def on_rank_0(action):
+    """``action`` on rank 0, the other ranks waiting for it: a file every rank then reads."""
+    if MPI.COMM_WORLD.rank == 0:
+        action()
+    MPI.COMM_WORLD.barrier()

@@ -11,11 +11,12 @@ from scipy.spatial.transform import Rotation
 from face_dolfinx.alignment.similarity import Similarity
 from face_dolfinx.capture import Capture, write_capture
 from face_dolfinx.cli.main import main
-from face_dolfinx.model.folder import load_model, read_model_arrays
+from face_dolfinx.model.folder import load_model
 from face_dolfinx.subjects.adaptation import SubjectError, adapt_to_markers
 from face_dolfinx.alignment.surface import SkinSurface
 from face_dolfinx.subjects.warp import inverted_tets
 from user_capture import user_sites, write_correspondence
+from conftest import on_rank_0
 
 # The subject: the template stretched, sheared and moved (an affine map, which the warp's affine
 # part reproduces exactly), in a lab frame of its own.
@@ -34,15 +35,6 @@ def puffed_subject(points):
     return affine_subject(points + puff[..., None] * np.array([0.5, 0.0, 1.0]) / np.sqrt(1.25))
 
 
-@pytest.fixture(scope="module")
-def template(builtin_model_path):
-    return read_model_arrays(builtin_model_path)
-
-
-def on_rank_0(action):
-    if MPI.COMM_WORLD.rank == 0:
-        action()
-    MPI.COMM_WORLD.barrier()
 
 
 def to_template(folder) -> Similarity:

@@ -4,7 +4,6 @@ another extent, in centimetres; and bad input refused with one message, nothing 
 import json
 
 import meshio
-from mpi4py import MPI
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -13,25 +12,17 @@ from face_dolfinx.alignment.similarity import Similarity
 from face_dolfinx.alignment.surface import SkinSurface
 from face_dolfinx.capture import Capture, write_capture
 from face_dolfinx.cli.main import main
-from face_dolfinx.model.folder import load_model, read_model_arrays, tet_volumes_and_quality
+from face_dolfinx.model.folder import load_model, tet_volumes_and_quality
 from face_dolfinx.subjects.elastic import PseudoElasticCarry
 from face_dolfinx.subjects.warp import inverted_tets
 from user_capture import user_sites, write_correspondence
+from conftest import on_rank_0
 
 LAB = Similarity(1.0, Rotation.from_euler("xyz", [10.0, -20.0, 4.0], degrees=True).as_matrix(), [120.0, -40.0, 900.0])
 CHANGE = 0.2   # the subject's mouth 20 % wider, eyes 16 % narrower (corner to corner)
 CHIN_CHANGE = 0.28  # lower lip to menton 20 % longer
 
 
-@pytest.fixture(scope="module")
-def template(builtin_model_path):
-    return read_model_arrays(builtin_model_path)
-
-
-def on_rank_0(action):
-    if MPI.COMM_WORLD.rank == 0:
-        action()
-    MPI.COMM_WORLD.barrier()
 
 
 class Proportions:
