@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from face_dolfinx.model.bones import rigid_map, rotation
-from face_dolfinx.results.accuracy import MotionMeasures, pinned_stretches, rigid_prediction, summary, summary_line
+from face_dolfinx.results.accuracy import MotionMeasures, pinned_stretches, rigid_prediction, summary, summary_lines
 from face_dolfinx.tracking import MarkerSetup, MarkerSetupError
 from face_dolfinx.tracking.markers import spread_out
 
@@ -62,7 +62,10 @@ def test_gaps_and_a_marker_worse_than_rigid_motion():
     assert record["worse_than_rigid"] == {"fitted": [], "validation": ["m0"]}
     assert record["markers"]["m2"]["explained"] == pytest.approx(1.0)
     assert record["groups"]["lips"]["markers"] == 4 and record["groups"]["lips"]["explained"] == pytest.approx(1.0)
-    assert "2 validation markers" in summary_line(record) and "m0" in summary_line(record)
+    record["pinned_muscles"] = [dict(muscle="mentalis_left", start_s=1.0, end_s=2.5, seconds=1.5)]
+    lines = summary_lines(record)
+    assert len(lines) == 4 and "2 validation markers" in lines[1] and "(m0)" in lines[1]
+    assert lines[2].startswith("by group: lips (4)") and lines[3].endswith("mentalis_left 1.5 s")
 
 
 def test_pinned_muscles():

@@ -143,18 +143,27 @@ def summary(measures: MotionMeasures, names: list[str], roles: list[str], groups
     return record
 
 
-def summary_line(record: dict) -> str:
-    """One line for the end of a fit."""
-    parts = []
+def summary_lines(record: dict) -> list[str]:
+    """The accuracy of a fitted take for a person: by role, by group, the markers the model does
+    not follow and the muscles pinned at 1."""
+    lines = []
     for role, pooled in record["roles"].items():
         if role == "ignored":
             continue
         worse = record["worse_than_rigid"][role]
-        parts.append(f"{pooled['markers']} {role} markers: median frame RMS {pooled['median_frame_rms_mm']:.2f} mm, "
+        lines.append(f"{pooled['markers']} {role} markers: median frame RMS {pooled['median_frame_rms_mm']:.2f} mm, "
                      f"{100 * pooled['explained']:.0f} % of their non-rigid motion ({pooled['non_rigid_mm']:.2f} mm "
                      f"RMS) explained" + (f", {len(worse)} predicted worse than by rigid motion alone "
                                           f"({', '.join(worse)})" if worse else ""))
-    return "; ".join(parts)
+    if record["groups"]:
+        lines.append("by group: " + "; ".join(
+            f"{name} ({group['markers']}) {group['rms_mm']:.2f} mm, {100 * group['explained']:.0f} %"
+            for name, group in record["groups"].items()))
+    pinned = record.get("pinned_muscles", [])
+    if pinned:
+        lines.append("at activation 1 for 0.5 s or longer: " + ", ".join(
+            f"{stretch['muscle']} {stretch['seconds']:.1f} s" for stretch in pinned))
+    return lines
 
 
 def _number(value) -> float | None:

@@ -29,6 +29,7 @@ import numpy as np  # noqa: E402
 
 from .xdmf import XdmfSeries  # noqa: E402
 from .render import render_skin  # noqa: E402
+from . import accuracy  # noqa: E402
 from .folder import FitFolder  # noqa: E402
 from face_dolfinx.model.folder import ModelArrays, read_model_arrays  # noqa: E402
 
@@ -58,6 +59,9 @@ def write_report(path, rendered_frames: int = RENDERED_FRAMES) -> list[Path]:
     written += _render_frames(folder, results, model, rendered_frames)
     written.append(_write_series(folder, results, model))
     log.info("report of %s: %s", folder.path, ", ".join(str(p.relative_to(folder.path)) for p in written))
+    record = folder.accuracy()
+    for line in accuracy.summary_lines(record) if record is not None else ():
+        log.info("accuracy: %s", line)
     return written
 
 

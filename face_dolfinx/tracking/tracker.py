@@ -23,7 +23,6 @@ from face_dolfinx.model.folder import load_model
 from face_dolfinx.parallel import on_rank_0
 from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.files import atomic_write
-from face_dolfinx.results import accuracy
 from face_dolfinx.results.folder import FitFolder
 from face_dolfinx.results.report import write_report
 from face_dolfinx.results.xdmf import FileNodeOrder
@@ -200,9 +199,6 @@ class Tracker:
         missing = on_rank_0(folder.missing_frames, self.comm)
         if not missing:
             on_rank_0(lambda: finish(folder), self.comm)
-            record = folder.accuracy()
-            if record is not None:
-                log.info("accuracy: %s", accuracy.summary_line(record))
         return TrackingRun(folder, results, missing)
 
     def track(self, capture: Capture, placement, out, *, chunks: int = 1, chunk: int | None = None,
