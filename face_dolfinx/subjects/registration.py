@@ -30,6 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from face_dolfinx.alignment.similarity import similarity_transform
 from face_dolfinx.alignment.surface import SkinSurface
 
 # mm^2: bending stiffness of the displacement, from the shape of a whole face down to the size of
@@ -164,20 +165,8 @@ def _weighted_affine(points, pairs: list[Pairs]) -> np.ndarray:
     singular = np.linalg.svd(affine[:, :3], compute_uv=False)
     if np.linalg.det(affine[:, :3]) > 0 and singular[0] <= MAX_AFFINE_ANISOTROPY * singular[-1]:
         return affine
-    return _weighted_similarity(source, target, weight)
-
-
-def _weighted_similarity(source, target, weight) -> np.ndarray:
-    """Umeyama's similarity with weights, as (3, 4) [s R | t]."""
-    w = weight / weight.sum()
-    mu_s, mu_t = w @ source, w @ target
-    s0, t0 = source - mu_s, target - mu_t
-    covariance = (t0 * w[:, None]).T @ s0
-    u, sigma, vt = np.linalg.svd(covariance)
-    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    rotation = u @ sign @ vt
-    scale = np.trace(np.diag(sigma) @ sign) / (w @ np.sum(s0 ** 2, axis=1))
-    return np.hstack([scale * rotation, (mu_t - scale * rotation @ mu_s)[:, None]])
+    similarity = similarity_transform(source, target, weight)
+    return np.hstack([similarity.scale * similarity.rotation, similarity.translation[:, None]])
 
 
 def _bending_operator(points, triangles) -> tuple[sp.csr_matrix, np.ndarray]:
