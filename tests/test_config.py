@@ -91,6 +91,8 @@ degree = 2
     ("[fit]\noverwrite = 'yes'\n", r"bad\.toml: \[fit\] overwrite must be true or false"),
     ("[fit]\ngn-steps = 2\ngn_steps = 3\n", r"bad\.toml: \[fit\] sets 'gn-steps' twice \('gn-steps' and 'gn_steps'\)"),
     ("tets = 'many'\n", r"bad\.toml: tets must be an integer, not 'many'"),
+    ("[fit]\nneutral-frame = 'rest'\n", r"bad\.toml: \[fit\] neutral-frame: 'rest': give a frame number or 'typical'"),
+    ("[fit]\nneutral-frame = 2.5\n", r"bad\.toml: \[fit\] neutral-frame must be a number or a word, not 2\.5"),
     ("[fit]\nconfig = 'other.toml'\n", r"bad\.toml: unknown key 'config' in \[fit\]"),
     ("[fit\n", r"bad\.toml: malformed TOML"),
 ])

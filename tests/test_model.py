@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from face_dolfinx.model.folder import (ModelError, _toml, load_model, read_model_arrays, skin_triangles,
+from face_dolfinx.model.folder import (ModelError, _toml, load_model, read_mesh_arrays, read_model_arrays, skin_triangles,
                                       tet_volumes_and_quality)
 
 
@@ -31,7 +31,7 @@ def test_model_contents(model):
     assert model.name == "builtin-face"
     assert len(model.muscles) == 32 and len(model.muscle_names) == 32
     assert model.muscle_index("zygomaticus_major_left") == model.muscle_names.index("zygomaticus_major_left")
-    assert set(model.boundary_ids) == {"cranium", "mandible", "skin", "free"}
+    assert set(model.boundary_ids) == {"cranium", "mandible", "skin", "free", "oral"}
     assert model.material["kappa"] > model.material["mu10"] > 0
     assert {"smile", "jaw_open"} <= set(model.expressions)
     jaw = model.jaw
@@ -259,6 +259,26 @@ def test_degenerate_tet(copy):
     cell = add_tet(copy, FAR + sliver)
     with pytest.raises(ModelError, match=rf"mesh\.h5: degenerate tetrahedra: 1 .*worst: cell {cell} with quality"):
         load(copy)
+
+
+def test_the_oral_surface_is_optional(copy):
+    edit_toml(copy, r"^oral = \d+$", "")
+    assert "oral" not in load(copy).boundary_ids
+
+
+def test_the_oral_surface_lines_the_mouth(model):
+    """The oral facets face the mouth: on the inner surface behind the lips, between the corners."""
+    points, _, facets, values = read_mesh_arrays(model.path)
+    centres = points[facets[values == model.boundary_ids["oral"]]].mean(axis=1)
+    lips = np.array([model.markers[name] for name in ("upper_lip_4", "lower_lip_4")])
+    corners = np.array([model.markers[name] for name in ("mouth_corner_left", "mouth_corner_right")])
+    assert len(centres) > 50
+    # Behind the lips' skin, no higher than the nose and no lower than the chin.
+    assert np.all(centres[:, 2] < lips[:, 2].min())
+    assert np.all(centres[:, 1] < model.markers["nose_tip"][1])
+    assert np.all(centres[:, 1] > model.markers["chin_5"][1])
+    # Both sides, past the mouth corners (the cheeks' lining).
+    assert centres[:, 0].min() < corners[:, 0].min() and centres[:, 0].max() > corners[:, 0].max()
 
 
 def test_no_cranium_facets(copy):

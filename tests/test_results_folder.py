@@ -31,7 +31,8 @@ def frame_result(frame: int, rng) -> FrameResult:
         jaw_tmj=rng.normal(size=3), marker_errors=errors, rms_error=float(np.sqrt(np.nanmean(errors**2))),
         max_error=float(np.nanmax(errors)), gn_steps=frame + 1, seconds=1.0 / 7.0,
         phases={"sensitivities": 0.25, "gn_solve": 1e-3}, flag="under-determined" if frame == 2 else "",
-        initial_rms=2.0 / 3.0, observability=0.875, unobservable=["mentalis"] if frame == 2 else [])
+        initial_rms=2.0 / 3.0, observability=0.875, unobservable=["mentalis"] if frame == 2 else [],
+        pressure=-12.0 / 7.0)
 
 
 def assert_same_frame(read: FrameResult, written: FrameResult):
@@ -130,10 +131,11 @@ class IdentityNodeOrder:
 def test_a_checkpoint_reads_back_identical(folder):
     rng = np.random.default_rng(3)
     state = ControlState("exact", rng.uniform(size=3), rigid_map(rotation([0, 0, 1], 0.2), [1, 2, 3], [0, 1, 0]),
-                         AffineMap(np.eye(3), [0.0, -1.0, 0.5]), tmj=np.array([0.1, 0.5, 0.7]))
+                         AffineMap(np.eye(3), [0.0, -1.0, 0.5]), tmj=np.array([0.1, 0.5, 0.7]), pressure=1.0 / 3.0)
     checkpoint = FitCheckpoint(
         state=state, previous_activations=rng.uniform(size=3), frames_done=4,
-        displacement=rng.normal(size=30), problem_controls=Controls(rng.uniform(size=3), state.cranium, state.jaw),
+        displacement=rng.normal(size=30),
+        problem_controls=Controls(rng.uniform(size=3), state.cranium, state.jaw, state.pressure),
         jacobian_state=state.copy(), jacobian_dofs=rng.normal(size=(12, 30)),
         jacobian_markers=rng.normal(size=(12, 4, 3)))
     order = IdentityNodeOrder()
@@ -145,9 +147,10 @@ def test_a_checkpoint_reads_back_identical(folder):
     assert loaded.frames_done == 4
     for read, written in ((loaded.state, state), (loaded.jacobian_state, state)):
         assert read.mode == "exact" and np.array_equal(read.activations, written.activations)
-        assert np.array_equal(read.tmj, written.tmj)
+        assert np.array_equal(read.tmj, written.tmj) and read.pressure == written.pressure
         assert read.cranium.same_as(written.cranium) and read.jaw.same_as(written.jaw)
     controls = loaded.problem_controls
+    assert controls.same_as(checkpoint.problem_controls)
     assert np.array_equal(controls.activations, checkpoint.problem_controls.activations)
     assert controls.cranium.same_as(state.cranium) and controls.jaw.same_as(state.jaw)
     folder.drop_checkpoint(3)

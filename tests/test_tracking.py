@@ -12,6 +12,7 @@ from face_dolfinx.tracking import PRESETS, RECORD_FIELDS, SettingError, Tracker,
 
 # A value other than the default for every setting, as the command line gives it and as it is kept.
 OTHER_VALUES = dict(mode=("paper", "paper"), gn_steps=("5", 5), smoothness=("0.5", 0.5), effort=("2", 2.0),
+                    intraoral_pressure=(None, True), pressure_limit=("50", 50.0),
                     fresh_jacobians=("2", 2), approximate_jacobians=("0.1", 0.1),
                     reuse_factorization=(None, True), newton_tolerance=("1e-3", 1e-3),
                     refresh_contraction=("0.3", 0.3), line_search_iterations=("2", 2))
@@ -36,7 +37,8 @@ def test_default_preset_is_the_library_default_and_fast_differs_where_documented
     assert changed == {"gn_steps", "fresh_jacobians", "approximate_jacobians", "reuse_factorization",
                        "newton_tolerance", "refresh_contraction", "line_search_iterations"}
     assert fast.problem_options() == dict(reuse_factorization=True, refresh_contraction=0.5,
-                                          newton_tolerance=1e-2, line_search_iterations=3)
+                                          newton_tolerance=1e-2, line_search_iterations=3,
+                                          intraoral_pressure=False)
 
 
 def test_updated_keeps_what_is_none_and_leaves_the_preset_alone():

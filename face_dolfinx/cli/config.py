@@ -139,6 +139,13 @@ def _single(action: argparse.Action, value, where: str):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise ConfigError(f"{where} must be a number, not {value!r}")
         value = float(value)
+    elif kind is not None and kind is not str:  # an option's own parser, e.g. a number or a word
+        if isinstance(value, bool) or not isinstance(value, (int, str)):
+            raise ConfigError(f"{where} must be a number or a word, not {value!r}")
+        try:
+            value = kind(str(value))
+        except argparse.ArgumentTypeError as error:
+            raise ConfigError(f"{where}: {error}") from None
     elif not isinstance(value, str):
         raise ConfigError(f"{where} must be a string, not {value!r}")
     if action.choices is not None and value not in action.choices:

@@ -194,10 +194,11 @@ def build_subject(args) -> None:
         if args.subject:
             capture = read_capture(args.subject, units=args.units, up_axis=args.up_axis,
                                    check_scale=not args.no_scale_check)
-            neutral = capture.neutral(args.neutral_frame)
+            neutral_frame = resolved_neutral_frame(args.neutral_frame, capture)
+            neutral = capture.neutral(neutral_frame)
             correspondence = read_correspondence_file(args.correspondence)
             inputs = dict(subject_capture=str(pathlib.Path(args.subject).resolve()),
-                          neutral_frame=args.neutral_frame % capture.n_frames,
+                          neutral_frame=neutral_frame % capture.n_frames,
                           correspondence_file=str(pathlib.Path(args.correspondence).resolve()))
             with _naming(args.subject):
                 adaptation = subject.adapt_to_markers(template, neutral, capture.marker_names, correspondence,
@@ -246,13 +247,15 @@ def fit(model, args) -> None:
     from face_dolfinx.capture import chunk_ranges, read_capture
     from face_dolfinx.capture.synthetic import truth_path
     from face_dolfinx.results.folder import FitFolderError
+    from face_dolfinx.parallel import on_rank_0
     from face_dolfinx.tracking import Tracker
     comm = MPI.COMM_WORLD
     capture_path = pathlib.Path(args.capture)
     # Every input is checked before the result folder exists: a bad input leaves nothing behind.
     capture = read_capture(capture_path, units=args.units, up_axis=args.up_axis,
                            check_scale=not args.no_scale_check)
-    placement = place_on_model(model, capture, args.neutral_frame, args.correspondence, args.accept_alignment)
+    neutral_frame = on_rank_0(lambda: resolved_neutral_frame(args.neutral_frame, capture), comm)
+    placement = place_on_model(model, capture, neutral_frame, args.correspondence, args.accept_alignment)
     take_frames = np.arange(capture.n_frames)[_frame_slice(args.frames, capture.n_frames)]
     capture = capture.select(take_frames)
     truth_file = pathlib.Path(args.truth) if args.truth else truth_path(capture_path)
@@ -280,6 +283,28 @@ def fit(model, args) -> None:
         log.info("%d frames still to fit; rerun the same command to continue %s", len(run.missing), folder.path)
         return
     log.info("results: %s (plots: *.png and renders/; ParaView: face.xdmf)", folder.path.resolve())
+
+
+def neutral_frame_option(text: str) -> int | str:
+    """``--neutral-frame``: a frame number or ``typical``."""
+    if text.strip() == "typical":
+        return "typical"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give a frame number or 'typical'") from None
+
+
+def resolved_neutral_frame(choice: int | str, capture) -> int:
+    """The neutral frame's number: ``choice`` itself, or the take's most typical frame."""
+    if choice != "typical":
+        return choice
+    from face_dolfinx.alignment.neutral import typical_frame
+    typical = typical_frame(capture)
+    log.info("neutral frame %d: the take's most typical frame (its markers %.2f mm RMS from the take's median "
+             "shape, head motion removed; frame 0: %.2f mm)", typical.frame, typical.rms_mm,
+             typical.first_frame_rms_mm)
+    return typical.frame
 
 
 def _frame_slice(text: str | None, n_frames: int) -> slice:
@@ -379,7 +404,9 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     build.add_argument("--surface", help="the subject's face surface (OBJ, STL, PLY, ...); needs --landmarks")
     build.add_argument("--correspondence", help="TOML or CSV: capture marker -> model landmark (>= 6)")
     build.add_argument("--landmarks", help="TOML or CSV: model landmark -> surface vertex id or [x, y, z]")
-    build.add_argument("--neutral-frame", type=int, default=0, help="frame of the subject capture at rest")
+    build.add_argument("--neutral-frame", type=neutral_frame_option, default=0, metavar="N|typical",
+                       help="frame of the subject capture at rest, or 'typical': the frame closest to the "
+                            "take's median shape (default 0)")
     build.add_argument("--units", help="mm, cm or m: the capture's when it does not say, the surface's (default mm)")
     build.add_argument("--up-axis", choices=("Y", "Z"), help="vertical axis of the capture file")
     build.add_argument("--no-scale-check", action="store_true",
@@ -445,8 +472,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--correspondence",
                    help="TOML or CSV: capture marker -> model landmark (>= 6), to align a capture whose "
                         "markers are not the model's marker sites (without it: ICP against the skin)")
-    p.add_argument("--neutral-frame", type=int, default=0,
-                   help="frame of the take at rest: aligned to the model, its markers embedded in the skin")
+    p.add_argument("--neutral-frame", type=neutral_frame_option, default=0, metavar="N|typical",
+                   help="frame of the take at rest: aligned to the model, its markers embedded in the skin; "
+                        "'typical': the frame closest to the take's median shape, head motion removed "
+                        "(for takes that do not start at rest; default 0)")
     p.add_argument("--accept-alignment", action="store_true",
                    help="fit even when the alignment to the model is judged wrong (a left/right swap, a pair "
                         "far off, an implausible scale): warned about and recorded in alignment.json")
@@ -464,6 +493,11 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="temporal smoothness weight on activations (default 0: off)")
     p.add_argument("--effort", type=float,
                    help="weight of the effort term, the sum of squared activations (mm^2; default 0: off)")
+    p.add_argument("--intraoral-pressure", action="store_true", default=None,
+                   help="fit the air pressure in the mouth too (a follower load on the lining of lips and "
+                        "cheeks, kPa; the model needs an 'oral' surface; LU instead of Cholesky)")
+    p.add_argument("--pressure-limit", type=float, metavar="KPA",
+                   help=f"bound of the intraoral pressure, +- (default {default.fit.pressure_limit:g} kPa)")
     p.add_argument("--validation-markers", metavar="A,B,...|N",
                    help="markers left out of the fit to measure prediction (embedded at the neutral frame, "
                         "followed, reported in frames.csv and accuracy.json): names, or a count picked "

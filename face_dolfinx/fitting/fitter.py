@@ -15,6 +15,7 @@ Two formulations share this driver (``formulations``, chosen by ``FitSettings.mo
     motion updated on the rotation group, the jaw its 3 TMJ degrees of freedom with hard bounds;
   ``paper``: 32 activations + 12 affine cranium + 12 affine jaw numbers, with the nested penalty
     schedule of section 7 (rho grows by 5 % per step) for the bounds, rigidity and TMJ terms.
+Either may add the intraoral pressure (``FitSettings.fit_pressure``): one more column, dX/dp.
 """
 import logging
 import math
@@ -56,7 +57,8 @@ class FaceFitter:
         point) that needs deep continuation is a bad step: it is rejected early, not forced."""
         self.problem.solve(activations=np.clip(state.activations, 0.0, 1.0),
                            cranium=state.cranium, jaw=self.formulation.jaw(state), guess=guess,
-                           max_halvings=self.settings.trial_halvings if trial else 10)
+                           max_halvings=self.settings.trial_halvings if trial else 10,
+                           pressure=state.pressure)
 
     def _objective(self, state: ControlState, targets, present) -> tuple[float, np.ndarray]:
         """sum w_i |x_i - target_i|^2 over the fitted markers, plus the regularisation terms."""
@@ -88,6 +90,8 @@ class FaceFitter:
         if self.settings.fit_jaw:
             derivatives = self.formulation.jaw_position_derivatives(state)
             columns.append(self.sensitivity.boundary_columns(derivatives))
+        if self.settings.fit_pressure:
+            columns.append(self.sensitivity.pressure_columns())
         dofs = np.concatenate(columns)
         marker = self.markers.evaluator.values_many(dofs)
         if cranium_marker_columns is not None:
@@ -312,7 +316,7 @@ class FaceFitter:
         worst = float(np.max(errors[present])) if present.any() else math.nan
         return FrameResult(frame, state.activations.copy(), state.cranium, self.formulation.jaw(state),
                            None if state.tmj is None else state.tmj.copy(), errors, rms, worst, steps,
-                           time.perf_counter() - start, phases, flag)
+                           time.perf_counter() - start, phases, flag, pressure=state.pressure)
 
     # -- checkpoint: what the next frame starts from ------------------------------------------
     def checkpoint(self) -> "FitCheckpoint":

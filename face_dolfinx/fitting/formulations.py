@@ -11,6 +11,8 @@ controls. ``FaceFitter`` drives either through this interface.
 ``paper`` (``PaperFormulation``, sifakis2005 section 7): activations + 12 affine cranium + 12
   affine jaw numbers, bounds, rigidity and TMJ constraints as penalties (``penalties``) whose
   weight rho grows by ``penalty_growth`` per Newton step of the nested schedule.
+Both may add the intraoral pressure (``FitSettings.fit_pressure``), one control in kPa within
++-``pressure_limit`` (a hard bound in exact mode, a penalty in paper mode).
 """
 from abc import ABC, abstractmethod
 import math
@@ -27,18 +29,20 @@ TMJ_STEP = 1e-6  # central-difference step of the closed-form jaw pose (rad, mm)
 
 
 class ControlState:
-    """The controls of one formulation (``mode``): activations, cranium and jaw frames, and the
-    TMJ values in exact mode (the jaw frame then follows from them)."""
+    """The controls of one formulation (``mode``): activations, cranium and jaw frames, the TMJ
+    values in exact mode (the jaw frame then follows from them) and the intraoral pressure (kPa)."""
 
-    def __init__(self, mode: str, activations, cranium: AffineMap, jaw: AffineMap, tmj=None):
+    def __init__(self, mode: str, activations, cranium: AffineMap, jaw: AffineMap, tmj=None,
+                 pressure: float = 0.0):
         self.mode = mode
         self.activations = np.asarray(activations, dtype=float).copy()
         self.cranium = cranium
         self.jaw = jaw
         self.tmj = None if tmj is None else np.asarray(tmj, dtype=float).copy()
+        self.pressure = float(pressure)
 
     def copy(self):
-        return ControlState(self.mode, self.activations, self.cranium, self.jaw, self.tmj)
+        return ControlState(self.mode, self.activations, self.cranium, self.jaw, self.tmj, self.pressure)
 
 
 class Formulation(ABC):
@@ -46,7 +50,7 @@ class Formulation(ABC):
 
     The control vector c, whose columns make the marker Jacobian, is laid out as
     activations (``num_muscles``), head (``head_size``, 0 unless ``fit_head``), jaw (``jaw_size``, 0
-    unless ``fit_jaw``).
+    unless ``fit_jaw``), intraoral pressure (``pressure_size``, 0 unless ``fit_pressure``).
     """
     name = ""
     head_controls = 0
@@ -61,6 +65,10 @@ class Formulation(ABC):
         self.num_muscles = problem.num_muscles
         self.head_size = self.head_controls if settings.fit_head else 0
         self.jaw_size = self.jaw_controls if settings.fit_jaw else 0
+        self.pressure_size = 1 if settings.fit_pressure else 0
+        self.pressure_index = self.num_muscles + self.head_size + self.jaw_size
+        if settings.fit_pressure and not problem.has_pressure:
+            raise ValueError("fit_pressure needs a FaceProblem with the intraoral pressure control")
 
     @abstractmethod
     def initial_state(self) -> ControlState:
@@ -73,6 +81,8 @@ class Formulation(ABC):
             names += self.head_names()
         if self.jaw_size:
             names += self.jaw_names()
+        if self.pressure_size:
+            names.append("intraoral_pressure")
         return names
 
     @abstractmethod
@@ -170,7 +180,7 @@ class ExactFormulation(Formulation):
 
     def step(self, state, A, b):
         """Bounded linear least squares: activations in [0, 1] and the trust region, TMJ values
-        within their limits."""
+        and the pressure within their limits."""
         n, head = self.num_muscles, self.head_size
         lower = np.full(A.shape[1], -np.inf)
         upper = np.full(A.shape[1], np.inf)
@@ -178,8 +188,12 @@ class ExactFormulation(Formulation):
         upper[:n] = np.minimum(1.0 - state.activations, self.trust_radius)
         if self.jaw_size:
             limits_low, limits_high = self.tmj_limits()
-            lower[n + head:] = limits_low - state.tmj
-            upper[n + head:] = limits_high - state.tmj
+            lower[n + head:n + head + 3] = limits_low - state.tmj
+            upper[n + head:n + head + 3] = limits_high - state.tmj
+        if self.pressure_size:
+            limit = self.settings.pressure_limit
+            lower[self.pressure_index] = -limit - state.pressure
+            upper[self.pressure_index] = limit - state.pressure
         # Round-off can put a control a hair outside its bounds; the step may not be infeasible.
         upper = np.maximum(upper, lower)
         scale = np.maximum(np.linalg.norm(A, axis=0), 1e-12)  # column scaling: mm vs rad vs 1
@@ -206,12 +220,16 @@ class ExactFormulation(Formulation):
                                     spin @ state.cranium.translation + step[n + 3:n + 6])
         if self.jaw_size:
             new.tmj = state.tmj + step[n + head:n + head + 3]
+        if self.pressure_size:
+            limit = self.settings.pressure_limit
+            new.pressure = float(np.clip(state.pressure + step[self.pressure_index], -limit, limit))
         return new
 
     def interpolate(self, a, b, t):
-        """Activations and TMJ values linearly, the head's rotation along the geodesic."""
+        """Activations, TMJ values and pressure linearly, the head's rotation along the geodesic."""
         new = a.copy()
         new.activations = (1 - t) * a.activations + t * b.activations
+        new.pressure = (1 - t) * a.pressure + t * b.pressure
         new.jaw = a.jaw.interpolate(b.jaw, t)
         new.tmj = (1 - t) * a.tmj + t * b.tmj
         axis, angle = _axis_angle(b.cranium.matrix @ a.cranium.matrix.T)
@@ -278,7 +296,15 @@ class PaperFormulation(Formulation):
         value = penalties.kinematic_and_bounds(full, n, self.jaw_geometry)
         keep = np.concatenate([np.arange(n), np.arange(n, n + 12) if self.head_size else [],
                                np.arange(n + 12, n + 24) if self.jaw_size else []]).astype(int)
-        return penalties.PenaltyValue(value.value, value.gradient[keep], value.hessian[np.ix_(keep, keep)])
+        fitted = penalties.PenaltyValue(value.value, value.gradient[keep], value.hessian[np.ix_(keep, keep)])
+        if not self.pressure_size:
+            return fitted
+        bound = penalties.symmetric_bound(state.pressure, self.settings.pressure_limit)
+        size = len(keep) + 1
+        gradient, hessian = np.zeros(size), np.zeros((size, size))
+        gradient[:-1], hessian[:-1, :-1] = fitted.gradient, fitted.hessian
+        gradient[-1], hessian[-1, -1] = bound.gradient[0], bound.hessian[0, 0]
+        return penalties.PenaltyValue(fitted.value + bound.value, gradient, hessian)
 
     def vector(self, state: ControlState) -> np.ndarray:
         """The fitted controls as one vector c."""
@@ -287,6 +313,8 @@ class PaperFormulation(Formulation):
             parts += [state.cranium.matrix.reshape(-1), state.cranium.translation]
         if self.jaw_size:
             parts += [state.jaw.matrix.reshape(-1), state.jaw.translation]
+        if self.pressure_size:
+            parts.append([state.pressure])
         return np.concatenate(parts)
 
     def state_from_vector(self, template: ControlState, c: np.ndarray) -> ControlState:
@@ -300,6 +328,8 @@ class PaperFormulation(Formulation):
             offset += 12
         if self.jaw_size:
             state.jaw = AffineMap(c[offset:offset + 9], c[offset + 9:offset + 12])
+        if self.pressure_size:
+            state.pressure = float(c[self.pressure_index])
         return state
 
     def step(self, state, A, b):
@@ -328,6 +358,7 @@ class PaperFormulation(Formulation):
         new.activations = (1 - t) * a.activations + t * b.activations
         new.jaw = a.jaw.interpolate(b.jaw, t)
         new.cranium = a.cranium.interpolate(b.cranium, t)
+        new.pressure = (1 - t) * a.pressure + t * b.pressure
         return new
 
     def summary(self):

@@ -33,6 +33,13 @@ def activation_bounds(a: np.ndarray) -> PenaltyValue:
     return PenaltyValue(value, gradient, hessian)
 
 
+def symmetric_bound(x: float, limit: float) -> PenaltyValue:
+    """((|x| - limit) / limit)^2 outside [-limit, limit], 0 inside: ``activation_bounds`` of
+    (x + limit) / (2 limit), scaled back to x (value 4x that of the scaled variable)."""
+    scaled = activation_bounds(np.array([(x + limit) / (2.0 * limit)]))
+    return PenaltyValue(4.0 * scaled.value, 2.0 * scaled.gradient / limit, scaled.hessian / limit**2)
+
+
 def rigidity(M: np.ndarray) -> PenaltyValue:
     """||M^T M - I||_F^2 on the 9 entries of M (row-major); Hessian projected PSD."""
     M = np.asarray(M, dtype=float).reshape(3, 3)

@@ -25,6 +25,7 @@ class FrameResult:
     initial_rms: float = math.nan       # marker RMS error of the warm start, before fitting
     observability: float = math.nan     # how well the visible markers determine the controls (1: as all do)
     unobservable: list[str] = field(default_factory=list)  # controls they cannot determine
+    pressure: float = 0.0               # intraoral pressure (kPa; 0 unless fitted)
 
 
 @dataclass

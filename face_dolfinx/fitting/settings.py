@@ -18,6 +18,11 @@ class FitSettings:
     effort: float = 0.0                 # weight (mm^2 per unit activation^2) of sum a_i^2 (static optimisation)
     fit_head: bool = True
     fit_jaw: bool = True
+    # The intraoral pressure control (kPa, a follower load on the lining of lips and cheeks; needs a
+    # FaceProblem with intraoral_pressure=True). The limit is where the built-in face's lower lip
+    # moves about 18 mm (100 kPa) or 15 mm (-100 kPa) at 5K tets.
+    fit_pressure: bool = False
+    pressure_limit: float = 100.0
     unreachable_rms: float = 3.0        # mm: a frame fitted worse than this is flagged
     # A frame is flagged under-determined when some combination of controls moves its visible
     # markers by less than this fraction of what a complete frame shows (``observability``;

@@ -35,6 +35,8 @@ from face_dolfinx.parallel import on_rank_0
 MODEL_FILE, MESH_FILE, HEAVY_FILE, MUSCLES_FILE = "model.toml", "mesh.xdmf", "mesh.h5", "muscles.npz"
 MESH_NAME, TAGS_NAME = "flesh", "boundaries"
 BOUNDARY_NAMES = ("cranium", "mandible", "skin", "free")
+# Optional tags: "oral", the free inner surface that faces the mouth's air (intraoral pressure).
+OPTIONAL_BOUNDARY_NAMES = ("oral",)
 MATERIAL_KEYS = ("mu10", "mu01", "kappa", "fiber_stress")
 MUSCLE_KINDS = ("linear", "sphincter")
 UNIT_TOLERANCE = 1e-6        # |fiber| must be 1 to this
@@ -278,7 +280,9 @@ def _read_metadata(path: Path) -> dict:
         need(table("material"), key, "material.")
     material = {key: number(table("material"), key, "material.") for key in table("material")}
     boundaries = {}
-    for key in BOUNDARY_NAMES:
+    for key in BOUNDARY_NAMES + OPTIONAL_BOUNDARY_NAMES:
+        if key in OPTIONAL_BOUNDARY_NAMES and key not in table("boundaries"):
+            continue
         value = need(table("boundaries"), key, "boundaries.")
         if isinstance(value, bool) or not isinstance(value, int):
             fail(f"boundaries.{key} must be an integer tag value, got {value!r}")

@@ -2,8 +2,15 @@
 
 ``FaceProblem`` alone owns the function spaces, the compiled forms and the SNES solver; the
 constitutive model is ``face_dolfinx.physics.material.FaceMaterial``. Controls
-(muscle activations, cranium frame, mandible frame relative to the cranium) live in DG0 functions
-and in the Dirichlet values, so changing them never recompiles a form.
+(muscle activations, cranium frame, mandible frame relative to the cranium, and optionally the
+intraoral pressure) live in DG0 functions, a ``fem.Constant`` and the Dirichlet values, so changing
+them never recompiles a form.
+
+The intraoral pressure (``intraoral_pressure=True``, a model with an ``oral`` surface) is the air
+pressure in the mouth above the ambient one, a follower load on the lining of the lips and cheeks:
+positive pushes them out (puffed cheeks, pushed lips), negative draws them in (suction). A follower
+load on a surface with a free border has a non-symmetric tangent, which MUMPS then factorises by
+LU instead of Cholesky.
 
 Muscles are embedded per tetrahedron (Sifakis et al. 2005 section 3). Rather than one UFL term per
 muscle (32 terms of piecewise curves make FFCx slow and the kernels long), each cell carries K
@@ -34,15 +41,18 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Controls:
-    """Everything that drives the face: activations, cranium frame, jaw frame (rel. cranium)."""
+    """Everything that drives the face: activations, cranium frame, jaw frame (rel. cranium) and
+    the intraoral pressure (kPa; 0 on a problem without that control)."""
 
     activations: np.ndarray
     cranium: AffineMap
     jaw: AffineMap
+    pressure: float = 0.0
 
     def interpolate(self, other: "Controls", t: float) -> "Controls":
         return Controls((1 - t) * self.activations + t * other.activations,
-                        self.cranium.interpolate(other.cranium, t), self.jaw.interpolate(other.jaw, t))
+                        self.cranium.interpolate(other.cranium, t), self.jaw.interpolate(other.jaw, t),
+                        (1 - t) * self.pressure + t * other.pressure)
 
     @classmethod
     def rest(cls, num_muscles: int) -> "Controls":
@@ -50,12 +60,12 @@ class Controls:
         return cls(np.zeros(num_muscles), AffineMap(), AffineMap())
 
     def copy(self) -> "Controls":
-        return Controls(self.activations.copy(), self.cranium, self.jaw)
+        return Controls(self.activations.copy(), self.cranium, self.jaw, self.pressure)
 
     def same_as(self, other: "Controls") -> bool:
         """The same values exactly."""
         return (np.array_equal(self.activations, other.activations) and self.cranium.same_as(other.cranium)
-                and self.jaw.same_as(other.jaw))
+                and self.jaw.same_as(other.jaw) and self.pressure == other.pressure)
 
 
 @dataclass
@@ -160,13 +170,15 @@ class FaceProblem:
     inversion_guard : shorten Newton steps that would flatten a cell (``solver.InversionGuard``);
         off only to measure what the guard buys (``benchmarks/stability.py``; solves without a
         ``guess``, which the guard pulls back).
+    intraoral_pressure : add the intraoral pressure control (module docstring); the model needs
+        facets tagged ``oral``.
     """
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
                  petsc_options: dict | None = None, reuse_factorization: bool = False,
                  krylov_on_old_factor: bool = False, newton_tolerance: float = 1e-8,
                  refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True,
-                 line_search_iterations: int = 1):
+                 line_search_iterations: int = 1, intraoral_pressure: bool = False):
         if line_search_iterations < 1:
             raise ValueError(f"line_search_iterations = {line_search_iterations}: give 1 or more")
         self.model = model
@@ -186,6 +198,16 @@ class FaceProblem:
         v = ufl.TestFunction(self.V)
         # The residual from the laws' stresses: the tangent is then one automatic derivative.
         residual = ufl.inner(self.material.first_piola(F), ufl.grad(v)) * dx
+        self.has_pressure = intraoral_pressure
+        self.pressure = fem.Constant(mesh, PETSc.ScalarType(0.0))
+        if intraoral_pressure:
+            # The cofactor J F^-T has degree 2(p-1), the test function p: 3p-2 integrates it exactly.
+            oral = ufl.ds(domain=mesh, subdomain_data=model.facet_tags, subdomain_id=self._oral_tag(),
+                          metadata={"quadrature_degree": 3 * degree - 2})
+            normal = ufl.FacetNormal(mesh)
+            residual = residual - forms.FollowerPressure(self.pressure).virtual_work(F, normal, v) * oral
+            # df/dp: the load of a unit pressure at the current shape (the residual is linear in p).
+            self._pressure_load = compile_form(forms.FollowerPressure(1.0).virtual_work(F, normal, v) * oral)
         # df/da_i: the active stress with a direction in place of a, integrated over muscle i's
         # cells only (one compiled kernel, one form object per muscle's cells): 32 assemblies over
         # the whole mesh per Jacobian cost more than the factorisation at 50K tets.
@@ -203,9 +225,12 @@ class FaceProblem:
         self.bcs = [fem.dirichletbc(self.bone_displacement, self.bone_blocks)]
         # The tangent is the Hessian of the energy: symmetric, and positive definite near
         # equilibrium.
-        self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent="spd", energy=energy,
+        # With the follower pressure it is not symmetric (module docstring): LU.
+        general = {"pc_type": "lu"} if intraoral_pressure else {}
+        self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent="general" if intraoral_pressure else "spd",
+                                        energy=energy,
                                         petsc_options={"snes_linesearch_max_it": line_search_iterations,
-                                                       **(petsc_options or {})},
+                                                       **general, **(petsc_options or {})},
                                         inversion_guard=InversionGuard(self.V) if inversion_guard else None,
                                         reuse_policy=FactorReusePolicy(across_solves=reuse_factorization,
                                                                        refresh_contraction=refresh_contraction),
@@ -215,6 +240,16 @@ class FaceProblem:
         self.set_controls(self.controls)
 
     # -- set-up ------------------------------------------------------------------------------
+    def _oral_tag(self) -> int:
+        """The tag value of the model's oral surface; a clear error if it has none."""
+        tag = self.model.boundary_ids.get("oral")
+        count = 0 if tag is None else self.comm.allreduce(len(self.model.facet_tags.find(tag)), op=MPI.SUM)
+        if count == 0:
+            raise ValueError(f"model {self.model.path}: no facets tagged 'oral' (the lining of the lips and "
+                             "cheeks), so it has no intraoral pressure control; rebuild a built-in or "
+                             "adapted model, or tag that surface in its mesh (docs/model_format.md)")
+        return tag
+
     def _bone_dof_blocks(self):
         tags = self.model.facet_tags
         fdim = self.mesh.topology.dim - 1
@@ -276,9 +311,13 @@ class FaceProblem:
     def set_controls(self, controls: Controls) -> None:
         """Put ``controls`` into the forms (activations) and the Dirichlet values (bone frames)
         without solving: the displacement stays as it is, no longer an equilibrium in general."""
+        if controls.pressure and not self.has_pressure:
+            raise ValueError(f"intraoral pressure {controls.pressure:g} kPa on a problem without that control "
+                             "(FaceProblem(intraoral_pressure=True))")
         if not controls.same_as(self.controls):
             self.solver.controls_changed()
         self._scatter(controls.activations, self.slots.activation)
+        self.pressure.value = controls.pressure
         values = self.bone_displacement.x.array.reshape(-1, 3)
         values[self.bone_blocks] = (self.bone_positions(controls.cranium, controls.jaw)
                                     - self.dof_coordinates[self.bone_blocks])
@@ -299,7 +338,7 @@ class FaceProblem:
     # -- solving -----------------------------------------------------------------------------
     def solve(self, activations=None, cranium: AffineMap | None = None,
               jaw: AffineMap | None = None, guess: np.ndarray | None = None,
-              max_halvings: int = 10) -> SolveReport:
+              max_halvings: int = 10, pressure: float | None = None) -> SolveReport:
         """Equilibrium for the given controls (unspecified ones keep their values).
 
         Newton starts from ``guess`` (a dof array, e.g. the Gauss-Newton prediction X + dX/dc dc)
@@ -311,7 +350,8 @@ class FaceProblem:
         target = Controls(
             self.activation_vector(activations) if activations is not None else start.activations,
             cranium if cranium is not None else start.cranium,
-            jaw if jaw is not None else start.jaw)
+            jaw if jaw is not None else start.jaw,
+            float(pressure) if pressure is not None else start.pressure)
         if guess is not None:
             began = time.perf_counter()
             equilibrium = self.u.x.array.copy()
@@ -354,6 +394,20 @@ class FaceProblem:
         fem_petsc.assemble_vector(out, self._active_residuals[muscle])
         out.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         out.scale(-1.0)  # force = -d(energy)/dx
+        fem_petsc.set_bc(out, self.bcs, scale=0.0)
+        return out
+
+    def pressure_force(self, out: PETSc.Vec | None = None) -> PETSc.Vec:
+        """df/dp, the load of a unit intraoral pressure at the current shape (zero on Dirichlet
+        dofs): the right-hand side of K dX/dp = df/dp."""
+        if not self.has_pressure:
+            raise ValueError("this problem has no intraoral pressure control")
+        if out is None:
+            out = fem_petsc.create_vector(self._pressure_load)
+        with out.localForm() as local:
+            local.set(0.0)
+        fem_petsc.assemble_vector(out, self._pressure_load)
+        out.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         fem_petsc.set_bc(out, self.bcs, scale=0.0)
         return out
 

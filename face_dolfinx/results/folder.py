@@ -58,7 +58,8 @@ def frame_to_dict(result: FrameResult) -> dict:
         marker_errors=_nullable(result.marker_errors),
         rms_error=result.rms_error, max_error=result.max_error, initial_rms=result.initial_rms,
         gn_steps=result.gn_steps, seconds=result.seconds, phases=result.phases, flag=result.flag,
-        observability=_nullable([result.observability])[0], unobservable=result.unobservable)
+        observability=_nullable([result.observability])[0], unobservable=result.unobservable,
+        pressure=result.pressure)
 
 
 def frame_from_dict(data: dict) -> FrameResult:
@@ -73,7 +74,8 @@ def frame_from_dict(data: dict) -> FrameResult:
         initial_rms=data["initial_rms"],
         # frame records written before the observability check have neither
         observability=float(_from_nullable([data.get("observability")])[0]),
-        unobservable=data.get("unobservable", []))
+        unobservable=data.get("unobservable", []),
+        pressure=data.get("pressure", 0.0))  # frame records of fits without that control
 
 
 def _nullable(values: np.ndarray) -> list:
@@ -257,10 +259,10 @@ class FitFolder:
             ["frame", "time_s"] + [f"cranium_M{i}{j}" for i in range(3) for j in range(3)]
             + ["cranium_tx", "cranium_ty", "cranium_tz"]
             + [f"jaw_M{i}{j}" for i in range(3) for j in range(3)] + ["jaw_tx", "jaw_ty", "jaw_tz"]
-            + ["jaw_opening_rad", "jaw_slide_right_mm", "jaw_slide_left_mm"],
+            + ["jaw_opening_rad", "jaw_slide_right_mm", "jaw_slide_left_mm", "intraoral_pressure_kpa"],
             [[r.frame, times[r.frame], *r.cranium.matrix.reshape(-1), *r.cranium.translation,
               *r.jaw.matrix.reshape(-1), *r.jaw.translation,
-              *(r.jaw_tmj if r.jaw_tmj is not None else [np.nan] * 3)] for r in results]))
+              *(r.jaw_tmj if r.jaw_tmj is not None else [np.nan] * 3), r.pressure] for r in results]))
         atomic_write(self.path / "marker_errors.csv", _table(
             ["frame"] + list(self.marker_names), [[r.frame, *r.marker_errors] for r in results]))
         columns = ["frame", "rms_error_mm", "max_error_mm", "initial_rms_mm", "gn_steps"]
@@ -327,7 +329,8 @@ def _map_from_arrays(prefix: str, data) -> AffineMap:
 
 def _state_arrays(prefix: str, state: ControlState) -> dict:
     arrays = {f"{prefix}_mode": np.array(state.mode), f"{prefix}_activations": state.activations,
-              **_map_arrays(f"{prefix}_cranium", state.cranium), **_map_arrays(f"{prefix}_jaw", state.jaw)}
+              **_map_arrays(f"{prefix}_cranium", state.cranium), **_map_arrays(f"{prefix}_jaw", state.jaw),
+              f"{prefix}_pressure": np.array(state.pressure)}
     if state.tmj is not None:
         arrays[f"{prefix}_tmj"] = state.tmj
     return arrays
@@ -336,17 +339,18 @@ def _state_arrays(prefix: str, state: ControlState) -> dict:
 def _state_from_arrays(prefix: str, data) -> ControlState:
     return ControlState(str(data[f"{prefix}_mode"]), data[f"{prefix}_activations"],
                         _map_from_arrays(f"{prefix}_cranium", data), _map_from_arrays(f"{prefix}_jaw", data),
-                        data[f"{prefix}_tmj"] if f"{prefix}_tmj" in data else None)
+                        data[f"{prefix}_tmj"] if f"{prefix}_tmj" in data else None,
+                        float(data[f"{prefix}_pressure"]))
 
 
 def _controls_arrays(prefix: str, controls: Controls) -> dict:
-    return {f"{prefix}_activations": controls.activations,
+    return {f"{prefix}_activations": controls.activations, f"{prefix}_pressure": np.array(controls.pressure),
             **_map_arrays(f"{prefix}_cranium", controls.cranium), **_map_arrays(f"{prefix}_jaw", controls.jaw)}
 
 
 def _controls_from_arrays(prefix: str, data) -> Controls:
     return Controls(data[f"{prefix}_activations"], _map_from_arrays(f"{prefix}_cranium", data),
-                    _map_from_arrays(f"{prefix}_jaw", data))
+                    _map_from_arrays(f"{prefix}_jaw", data), float(data[f"{prefix}_pressure"]))
 
 
 def _table(header, rows) -> str:

@@ -6,7 +6,8 @@ can (re)build it at any time, also for an unfinished fit (it says which frames a
 the result does not depend on how many ranks, chunks or resumes produced the frames.
 
   activations.png   activation over time of the most active muscles (truth dashed)
-  kinematics.png    jaw opening, head rotation angle and translation over time (truth dashed)
+  kinematics.png    jaw opening, head rotation angle and translation over time (truth dashed),
+                    and the intraoral pressure of a fit that has that control
   marker_error.png  per-frame RMS and largest marker error; with a truth, the capture's own
                     noise (what a perfect fit would show) dashed and the error against the
                     clean markers dotted
@@ -118,7 +119,8 @@ def _plot_kinematics(folder: FitFolder, results: dict, truth) -> Path:
     opening = _series(results, len(t), lambda r: math.degrees(r.jaw_tmj[0]) if exact else _rotation_angle(r.jaw.matrix))
     head_angle = _series(results, len(t), lambda r: _rotation_angle(r.cranium.matrix))
     head_shift = _series(results, len(t), lambda r: r.cranium.translation)
-    figure, axes = _figure(3)
+    with_pressure = bool(folder.settings.get("intraoral_pressure"))
+    figure, axes = _figure(4 if with_pressure else 3)
     axes[0].plot(t, opening, color="C0", label="fit")
     axes[0].set_ylabel("jaw opening (deg)" if exact else "jaw rotation (deg)")
     axes[1].plot(t, head_angle, color="C0")
@@ -133,7 +135,11 @@ def _plot_kinematics(folder: FitFolder, results: dict, truth) -> Path:
             axes[2].plot(t, [h.translation[k] for h in truth.head], color=f"C{k}", linestyle="--")
         axes[0].legend(fontsize=7)
     axes[2].legend(fontsize=7, ncol=3)
-    axes[2].set_xlabel("time (s)")
+    if with_pressure:
+        axes[3].plot(t, _series(results, len(t), lambda r: r.pressure), color="C0")
+        axes[3].axhline(0.0, color="0.6", linewidth=0.8)
+        axes[3].set_ylabel("intraoral pressure (kPa)")
+    axes[-1].set_xlabel("time (s)")
     axes[0].set_title("Jaw and head motion" + (" (fit solid, truth dashed)" if truth is not None else ""))
     return _save(figure, folder.path / "kinematics.png")
 

@@ -2,6 +2,7 @@
 
 At an equilibrium f(X(c), c) = 0, with K the tangent (identity rows on Dirichlet dofs):
   activations       K dX/da_i = f_i                                   (eq. 5)
+  intraoral p       K dX/dp = df/dp, the load of a unit pressure (f is linear in p)
   bone-driven b_i   K dX/db_i = -K_UC dX^C/db_i, and dX^C/db_i on C   (eq. 6, by lifting)
   cranium frame     dX/db_i = (dM_c/db_i) y + dt_c/db_i,  y = M_c^-1 (x - t_c)   (analytic)
 One factorisation of K serves every right-hand side; it is the equilibrium solver's own (same
@@ -88,6 +89,10 @@ class EquilibriumSensitivity:
         """dX/da_i for the given muscles (default all): (k, local dofs incl. ghosts)."""
         muscles = list(range(self.problem.num_muscles) if muscles is None else muscles)
         return self._solve_all(lambda j: self.problem.active_force(muscles[j], out=self._rhs), len(muscles))
+
+    def pressure_columns(self) -> np.ndarray:
+        """dX/dp for the intraoral pressure: (1, local dofs incl. ghosts)."""
+        return self._solve_all(lambda j: self.problem.pressure_force(out=self._rhs), 1)
 
     def boundary_columns(self, bone_derivatives: np.ndarray) -> np.ndarray:
         """dX/db for parameters that move the bone-attached nodes non-rigidly (the jaw).

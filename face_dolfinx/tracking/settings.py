@@ -28,6 +28,8 @@ RECORD_FIELDS = {
     "gn_steps": ("fit", "max_gn_steps"),
     "smoothness": ("fit", "temporal_smoothness"),
     "effort": ("fit", "effort"),
+    "intraoral_pressure": ("fit", "fit_pressure"),
+    "pressure_limit": ("fit", "pressure_limit"),
     "fresh_jacobians": ("fit", "max_fresh_jacobians"),
     "approximate_jacobians": ("fit", "approximate_jacobian_within"),
     "reuse_factorization": ("solver", "reuse_factorization"),
@@ -60,6 +62,7 @@ class TrackingSettings:
             ("gn_steps", self.fit.max_gn_steps >= 1, "give 1 or more Gauss-Newton steps per frame"),
             ("smoothness", self.fit.temporal_smoothness >= 0, "give a weight, 0 or more"),
             ("effort", self.fit.effort >= 0, "give a weight, 0 or more"),
+            ("pressure_limit", self.fit.pressure_limit > 0, "give a positive pressure in kPa"),
             ("fresh_jacobians", self.fit.max_fresh_jacobians is None or self.fit.max_fresh_jacobians >= 0,
              "give 0 or more fresh Jacobians per frame"),
             ("approximate_jacobians", self.fit.approximate_jacobian_within >= 0,
@@ -91,8 +94,9 @@ class TrackingSettings:
         return {key: self.value(key) for key in RECORD_FIELDS}
 
     def problem_options(self) -> dict:
-        """The ``FaceProblem`` keywords."""
-        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "fit"}
+        """The ``FaceProblem`` keywords (the pressure control is a control of the problem too)."""
+        return {**{f.name: getattr(self, f.name) for f in fields(self) if f.name != "fit"},
+                "intraoral_pressure": self.fit.fit_pressure}
 
 
 PRESETS = {

@@ -9,7 +9,10 @@ Inner surface (t = 0), by the (theta, phi) polygons of [attachments] (left half,
             buccal gap between the dental arches, masseter between zygomatic arch and ramus),
             so the lips and mouth corners can move and no node is pulled by both bones; the
             flesh behind the ramus; the submental region and neck; and the eyelids, within
-            eye_margin degrees of the eye openings (they rest on the eyeball).
+            eye_margin degrees of the eye openings (they rest on the eyeball);
+  oral      the free inner surface inside the [attachments] ``oral`` polygon: the lining of the
+            vestibule and of the cheeks, which faces the air of the mouth (the intraoral
+            pressure acts there, ``FaceProblem(intraoral_pressure=True)``).
 Side walls of the mask: the mouth and eye walls are skin (lip and eyelid surfaces); the other
 edges get the region at their position (cranium at the top and upper lateral edges, free at the
 neck cut). The outer surface is skin.
@@ -23,13 +26,14 @@ from .domain import PlanarMesh
 from .extrude import LayeredMesh
 from .openings import Opening
 
-BOUNDARY_IDS = {"cranium": 1, "mandible": 2, "skin": 3, "free": 4}
+BOUNDARY_IDS = {"cranium": 1, "mandible": 2, "skin": 3, "free": 4, "oral": 5}
 
 
 def bone_region(centres: np.ndarray, attachments: Attachments, openings: tuple[Opening, ...]) -> np.ndarray:
-    """Tag value (cranium, mandible or free) of inner-surface points (theta, phi)."""
+    """Tag value (cranium, mandible, oral or free) of inner-surface points (theta, phi)."""
     mirrored = np.column_stack([np.abs(centres[:, 0]), centres[:, 1]])
     values = np.full(len(centres), BOUNDARY_IDS["free"], dtype=np.int32)
+    values[Polygon(attachments.oral).contains_points(mirrored)] = BOUNDARY_IDS["oral"]
     values[Polygon(attachments.cranium).contains_points(mirrored)] = BOUNDARY_IDS["cranium"]
     values[Polygon(attachments.mandible).contains_points(mirrored)] = BOUNDARY_IDS["mandible"]
     eyes = np.concatenate([_densify(o.outline()) for o in openings if o.name.startswith("eye")])

@@ -60,6 +60,7 @@ class Eye:
 class Attachments:
     cranium: np.ndarray     # (k, 2) polygons in (theta, phi), left half
     mandible: np.ndarray
+    oral: np.ndarray        # the free inner surface inside it faces the mouth's air
     eye_margin: float       # degrees
 
 
@@ -162,7 +163,7 @@ def load_description(path: Path) -> Description:
             layers_per_cube_root_ktets=read.number(mesh, "layers_per_cube_root_ktets"),
             min_layers=int(read.number(mesh, "min_layers")), max_layers=int(read.number(mesh, "max_layers"))),
         attachments=Attachments(read.points(attachments, "cranium", 2), read.points(attachments, "mandible", 2),
-                                read.number(attachments, "eye_margin")),
+                                read.points(attachments, "oral", 2), read.number(attachments, "eye_margin")),
         jaw=Jaw(read.vector(jaw, "condyle_left", 3), read.vector(jaw, "slide_direction", 3),
                 read.number(jaw, "track_length"), read.number(jaw, "max_opening_sine")),
         material={key: read.number(read.table(data, "material"), key) for key in read.table(data, "material")},
