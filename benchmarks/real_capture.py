@@ -11,11 +11,16 @@ The targets of a usable subject fit on a real take: median per-frame RMS of the 
 no validation marker predicted worse than by rigid motion alone. The line says which are met.
 
 The development capture is AnimFace's NoseMoCap (41 markers, centimetres; not in this repository,
-CC BY-SA 4.0): with the correspondence file beside this script,
+CC BY-SA 4.0): with the correspondence file beside this script, on a model adapted to the take's most
+typical frame (``benchmarks/run_real_capture.sh`` runs what docs/accuracy.md cites),
 
-    mpirun -n 2 python benchmarks/real_capture.py PATH/NoseMoCap_cm.csv --units cm \\
-        --correspondence benchmarks/real_capture/animface_correspondence.toml \\
-        --marker-setup benchmarks/real_capture/animface_markers.toml --tets 20000
+    python run.py build --subject PATH/NoseMoCap_cm.csv --units cm --neutral-frame typical \\
+        --correspondence benchmarks/real_capture/animface_correspondence.toml --tets 20000 --out runs/me
+    mpirun -n 2 python benchmarks/real_capture.py PATH/NoseMoCap_cm.csv --units cm --model runs/me \\
+        --correspondence benchmarks/real_capture/animface_correspondence.toml --neutral-frame typical \\
+        --marker-setup benchmarks/real_capture/animface_markers.toml
+
+Options it does not know (``--neutral-frame``, ``--effort``, ``--intraoral-pressure``, ...) go to the fit.
 """
 import argparse
 import json
