@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from face_dolfinx.model.bones import rigid_map, rotation
-from face_dolfinx.equilibrium.coarse import CoarseStart, _locate
+from face_dolfinx.equilibrium.coarse import CoarseStart, locate_in_cells
 from face_dolfinx.physics.problem import FaceProblem
 from slab import slab_model
 
@@ -15,7 +15,7 @@ def test_located_weights_reproduce_linear_fields_inside_and_outside():
     points = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
     cells = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
     targets = np.array([[0.1, 0.2, 0.3], [0.6, 0.6, 0.6], [-0.5, 0.2, 0.2]])
-    host, weights, outside = _locate(points, cells, targets)
+    host, weights, outside = locate_in_cells(points, cells, targets)
     assert np.array_equal(host[0], cells[0]) and np.array_equal(host[1], cells[1])
     assert outside[0] == 0.0 and outside[1] == 0.0 and outside[2] == pytest.approx(0.5)
     field = points @ np.array([[1.0, 2, 3], [0, -1, 4], [2, 0.5, 0]]) + np.array([1.0, -2, 0.5])

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from face_dolfinx.model.folder import (ModelError, _toml, load_model, read_mesh_arrays, read_model_arrays, skin_triangles,
+from face_dolfinx.model.folder import (ModelError, toml_value, load_model, read_mesh_arrays, read_model_arrays, skin_triangles,
                                       tet_volumes_and_quality)
 
 
@@ -289,7 +289,7 @@ def test_no_cranium_facets(copy):
 
 def test_marker_off_the_skin(copy):
     marker = tomllib.loads((copy / "model.toml").read_text())["markers"]["chin_2"]
-    edit_toml(copy, r"^chin_2 = .*$", f"chin_2 = {_toml(np.array(marker) + [0, 0, 5.0])}")
+    edit_toml(copy, r"^chin_2 = .*$", f"chin_2 = {toml_value(np.array(marker) + [0, 0, 5.0])}")
     with pytest.raises(ModelError, match=r"model\.toml: markers farther than 1.0 mm from the skin \(1 of 79\): chin_2 \([45]\."):
         load(copy)
 

@@ -9,7 +9,7 @@ from mpi4py import MPI
 from dolfinx import fem
 
 from face_dolfinx.results.xdmf import FileNodeOrder, XdmfSeries
-from face_dolfinx.results.report import _ranges
+from face_dolfinx.results.report import frame_ranges
 
 
 def test_file_node_order_gathers_and_scatters_exactly(model, builtin_model_path):
@@ -65,5 +65,5 @@ def test_xdmf_series_interrupted_leaves_nothing(tmp_path):
 
 
 def test_frame_ranges():
-    assert _ranges([2, 3, 4, 5, 9]) == "2-5, 9"
-    assert _ranges([0]) == "0"
+    assert frame_ranges([2, 3, 4, 5, 9]) == "2-5, 9"
+    assert frame_ranges([0]) == "0"

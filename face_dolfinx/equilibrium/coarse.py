@@ -61,7 +61,7 @@ class CoarseStart:
         num_cells = coarse.mesh.topology.index_map(3).size_local
         local_cells = self._global[coarse.V.dofmap.list.array.reshape(-1, 4)[:num_cells]]
         cells = np.concatenate(self.comm.allgather(local_cells))
-        self._cells, self._weights, outside = _locate(rest, cells, fine.dof_coordinates)
+        self._cells, self._weights, outside = locate_in_cells(rest, cells, fine.dof_coordinates)
         worst = self.comm.allreduce(outside.max(initial=0.0), op=MPI.MAX)
         if worst > max_outside:
             raise ValueError(
@@ -109,7 +109,7 @@ class CoarseStart:
                    for new, old in ((cranium, current.cranium), (jaw, current.jaw)))
 
 
-def _locate(points: np.ndarray, cells: np.ndarray, targets: np.ndarray):
+def locate_in_cells(points: np.ndarray, cells: np.ndarray, targets: np.ndarray):
     """Host cell (as its 4 vertex ids) and barycentric weights of each target point in the
     tetrahedra ``cells`` over ``points``; a point in no cell gets the cell whose smallest
     barycentric coordinate is largest, with that cell's (extrapolating) weights. Also returns

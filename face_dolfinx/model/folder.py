@@ -616,32 +616,32 @@ def _write_mesh(folder: Path, points, cells, facets, values) -> None:
 
 
 def _model_toml(name, boundary_ids, muscles, jaw, markers, landmarks, material, expressions, info) -> str:
-    lines = [f"name = {_toml(name)}", 'units = { length = "mm", stress = "kPa" }', ""]
+    lines = [f"name = {toml_value(name)}", 'units = { length = "mm", stress = "kPa" }', ""]
     if info:
-        lines += ["[generator]"] + [f"{_key(k)} = {_toml(v)}" for k, v in info.items()] + [""]
-    lines += ["[material]"] + [f"{_key(k)} = {_toml(v)}" for k, v in material.items()] + [""]
+        lines += ["[generator]"] + [f"{_key(k)} = {toml_value(v)}" for k, v in info.items()] + [""]
+    lines += ["[material]"] + [f"{_key(k)} = {toml_value(v)}" for k, v in material.items()] + [""]
     lines += ["[boundaries]"] + [f"{_key(k)} = {int(v)}" for k, v in boundary_ids.items()] + [""]
     for muscle in muscles:
-        lines += ["[[muscles]]", f"name = {_toml(muscle.name)}", f"kind = {_toml(muscle.kind)}"]
+        lines += ["[[muscles]]", f"name = {toml_value(muscle.name)}", f"kind = {toml_value(muscle.kind)}"]
         if muscle.peak_stress is not None:
-            lines.append(f"peak_stress = {_toml(muscle.peak_stress)}")
-        lines += [f"{key} = {_toml(value)}" for key, value in muscle.geometry.items()] + [""]
-    lines += ["[jaw]", f"condyle_right = {_toml(jaw.condyle_right)}", f"condyle_left = {_toml(jaw.condyle_left)}",
-              f"slide_direction = {_toml(jaw.v)}", f"track_length = {_toml(jaw.track_length)}",
-              f"max_opening_sine = {_toml(jaw.max_opening_sine)}", ""]
+            lines.append(f"peak_stress = {toml_value(muscle.peak_stress)}")
+        lines += [f"{key} = {toml_value(value)}" for key, value in muscle.geometry.items()] + [""]
+    lines += ["[jaw]", f"condyle_right = {toml_value(jaw.condyle_right)}", f"condyle_left = {toml_value(jaw.condyle_left)}",
+              f"slide_direction = {toml_value(jaw.v)}", f"track_length = {toml_value(jaw.track_length)}",
+              f"max_opening_sine = {toml_value(jaw.max_opening_sine)}", ""]
     for title, sites in (("markers", markers), ("landmarks", landmarks)):
-        lines += [f"[{title}]"] + [f"{_key(k)} = {_toml(v)}" for k, v in sites.items()] + [""]
+        lines += [f"[{title}]"] + [f"{_key(k)} = {toml_value(v)}" for k, v in sites.items()] + [""]
     for expression, activations in expressions.items():
         lines += [f"[expressions.{_key(expression)}]"]
-        lines += [f"{_key(k)} = {_toml(v)}" for k, v in activations.items()] + [""]
+        lines += [f"{_key(k)} = {toml_value(v)}" for k, v in activations.items()] + [""]
     return "\n".join(lines)
 
 
 def _key(key: str) -> str:
-    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else _toml(key)
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else toml_value(key)
 
 
-def _toml(value) -> str:
+def toml_value(value) -> str:
     """A TOML literal for the plain values a model holds: strings, numbers, vectors."""
     if isinstance(value, str):
         return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
@@ -651,4 +651,4 @@ def _toml(value) -> str:
         return str(int(value))
     if isinstance(value, (float, np.floating)):
         return repr(float(value))
-    return "[" + ", ".join(_toml(v) for v in np.asarray(value).tolist()) + "]"
+    return "[" + ", ".join(toml_value(v) for v in np.asarray(value).tolist()) + "]"

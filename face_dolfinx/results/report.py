@@ -47,7 +47,7 @@ def write_report(path, rendered_frames: int = RENDERED_FRAMES) -> list[Path]:
     missing = folder.missing_frames()
     if missing:
         log.warning("%s: %d of %d frames are not fitted yet (%s); the report shows the others",
-                    folder.path, len(missing), len(folder.times), _ranges(missing))
+                    folder.path, len(missing), len(folder.times), frame_ranges(missing))
     if not results:
         raise ValueError(f"{folder.path}: no finished frame to report on")
     truth = folder.truth()
@@ -235,7 +235,7 @@ def _write_series(folder: FitFolder, results: dict, model: ModelArrays) -> Path:
     return path
 
 
-def _ranges(frames: list[int]) -> str:
+def frame_ranges(frames: list[int]) -> str:
     """'2-5, 9' for [2, 3, 4, 5, 9]."""
     parts, start = [], frames[0]
     for previous, current in zip(frames, frames[1:] + [None]):
