@@ -281,3 +281,26 @@ def test_synth_writes_a_stretch_of_a_longer_take(builtin_model_path, shared_tmp)
     with pytest.raises(SystemExit, match="runs past the 240-frame take"):
         main(["synth", *model, "--frames", "2", "--take-frames", "240", "--first-frame", "239",
               "--out", str(shared_tmp / "never.trc")])
+
+
+def test_video_of_a_fit_folder(fitted_take, shared_tmp):
+    """The whole take at its own rate, every frame the shaded face with both marker sets; a GIF on
+    request; a folder that is no fit folder gets one clear message."""
+    imageio = pytest.importorskip("imageio.v2")
+    _, _, out = fitted_take
+    mp4, gif = shared_tmp / "take.mp4", shared_tmp / "take.gif"
+    assert main(["video", str(out), "--out", str(mp4)]) == 0
+    assert main(["video", str(out), "--out", str(gif), "--gif", "--step", "2"]) == 0
+    if MPI.COMM_WORLD.rank == 0:
+        reader = imageio.get_reader(mp4)
+        assert reader.get_meta_data()["fps"] == pytest.approx(60.0)  # the synthetic take's rate
+        frames = [frame / 255.0 for frame in reader]
+        assert len(frames) == 4
+        for frame in frames:
+            grey = frame.mean(axis=2)
+            assert frame.shape == (900, 750, 3) and 0.15 < (grey < 0.95).mean() < 0.95
+            for colour in (RED, GREEN):  # lossy encoding: colours within 0.25
+                assert pixels_of(frame, colour, tolerance=0.25) > 20
+        assert len(imageio.mimread(gif)) == 2
+    with pytest.raises(SystemExit, match="is not a fit results folder"):
+        main(["video", str(shared_tmp)])

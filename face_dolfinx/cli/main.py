@@ -247,7 +247,6 @@ def fit(model, args) -> None:
     from face_dolfinx.capture import chunk_ranges, read_capture
     from face_dolfinx.capture.synthetic import truth_path
     from face_dolfinx.results.folder import FitFolderError
-    from face_dolfinx.parallel import on_rank_0
     from face_dolfinx.tracking import Tracker
     comm = MPI.COMM_WORLD
     capture_path = pathlib.Path(args.capture)
@@ -443,6 +442,18 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("folder", help="results folder written by fit")
     p.add_argument("--renders", type=int, default=4, help="number of frames to render")
 
+    p = sub.add_parser("video", help="MP4 (or GIF) of a fit folder: the rendered skin over time",
+                       description="The skin of every fitted frame (or every STEP-th), captured markers red "
+                                   "and simulated green, time and marker error in the caption, played at "
+                                   "the take's rate: FOLDER/face.mp4 (H.264), or face.gif where no encoder "
+                                   "is found or with --gif. Runs on one process.")
+    p.add_argument("folder", help="results folder written by fit")
+    p.add_argument("--out", help="the video file (default FOLDER/face.mp4 or face.gif)")
+    p.add_argument("--view", choices=("front", "three_quarter", "side"), default="front")
+    p.add_argument("--step", type=int, default=1, help="every STEP-th fitted frame (default 1: all)")
+    p.add_argument("--fps", type=float, help="frames per second (default: real time)")
+    p.add_argument("--gif", action="store_true", help="an animated GIF instead of an MP4")
+
     def model_options(p, out):
         p.add_argument("--model", help="model folder (default: the built-in face)")
         p.add_argument("--tets", type=int, default=20_000, help="built-in face resolution")
@@ -594,6 +605,16 @@ def _main(argv=None) -> int:
     if args.command == "report":
         from face_dolfinx.results.report import write_report
         on_rank_0(lambda: write_report(args.folder, rendered_frames=args.renders), MPI.COMM_WORLD)
+        return 0
+    if args.command == "video":
+        from face_dolfinx.results.video import write_video
+
+        try:
+            written = on_rank_0(lambda: write_video(args.folder, args.out, view=args.view, step=args.step,
+                                                    fps=args.fps, gif=args.gif), MPI.COMM_WORLD)
+        except (FileNotFoundError, ValueError) as error:
+            raise SystemExit(f"face-dolfinx video: error: {error}") from None
+        log.info("video: %s", written)
         return 0
     if args.command == "demo":
         return demo(args)

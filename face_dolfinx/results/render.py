@@ -58,6 +58,19 @@ def render_skin(points, triangles, path, scalars=None, markers=None, other_marke
     e.g. captured and simulated marker positions; rows with NaN (capture gaps) are skipped.
     view: "front", "three_quarter" or "side".
     """
+    figure = draw_skin(points, triangles, scalars, markers, other_markers, title, view, cmap=cmap,
+                       size=size, dpi=dpi)
+    path = Path(path)
+    figure.savefig(path, facecolor="white")
+    plt.close(figure)
+    return path
+
+
+def draw_skin(points, triangles, scalars=None, markers=None, other_markers=None, title=None,
+              view="front", *, cmap="viridis", size=(5.0, 6.0), dpi=150, box=None):
+    """The figure ``render_skin`` saves (the caller closes it). ``box`` ((x0, x1), (y0, y1)) in
+    the view's camera coordinates fixes what is shown, e.g. the same for every frame of a video;
+    by default the drawn surface fills the picture."""
     points = np.asarray(points, dtype=float)
     triangles = np.asarray(triangles, dtype=np.int64)
     rotation = camera_rotation(view)
@@ -99,20 +112,25 @@ def render_skin(points, triangles, path, scalars=None, markers=None, other_marke
         xyz = xyz[_visible(xyz, corners)]
         axes.scatter(xyz[:, 0], xyz[:, 1], s=area, c=colour, edgecolors="black", linewidths=0.3,
                      zorder=3)
-    drawn = corners[:, :, :2].reshape(-1, 2)       # frame what is drawn, not unused points
-    low, high = drawn.min(axis=0), drawn.max(axis=0)
-    margin = 0.04 * (high - low).max()
-    axes.set_xlim(low[0] - margin, high[0] + margin)
-    axes.set_ylim(low[1] - margin, high[1] + margin)
+    if box is None:
+        drawn = corners[:, :, :2].reshape(-1, 2)       # frame what is drawn, not unused points
+        box = view_box(drawn)
+    axes.set_xlim(*box[0])
+    axes.set_ylim(*box[1])
     axes.set_aspect("equal")
     axes.axis("off")
     if title:
         axes.set_title(title, fontsize=10)
     figure.tight_layout()
-    path = Path(path)
-    figure.savefig(path, facecolor="white")
-    plt.close(figure)
-    return path
+    return figure
+
+
+def view_box(camera_xy: np.ndarray, margin: float = 0.04) -> tuple[tuple[float, float], tuple[float, float]]:
+    """((x0, x1), (y0, y1)) around camera-plane points (k, 2), with a margin of ``margin`` times the
+    larger extent."""
+    low, high = camera_xy.min(axis=0), camera_xy.max(axis=0)
+    pad = margin * (high - low).max()
+    return (low[0] - pad, high[0] + pad), (low[1] - pad, high[1] + pad)
 
 
 def _smoothed_normals(triangles: np.ndarray, area_normals: np.ndarray, num_points: int):
