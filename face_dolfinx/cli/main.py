@@ -68,11 +68,38 @@ def _model_from_args(args):
     from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.model.folder import load_model
     path = pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets)
-    return load_model(path, MPI.COMM_WORLD)
+    model = load_model(path, MPI.COMM_WORLD)
+    return model.with_strength(args.strength) if args.strength else model
+
+
+def strength_option(text: str) -> dict[str, float]:
+    """``--strength``: a factor for every muscle (``1.5``) and/or per muscle (``mentalis_left=2``),
+    comma-separated; factors of one muscle multiply."""
+    scales = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, _, value = item.rpartition("=")
+        name = name.strip() or "all"
+        try:
+            factor = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{item!r}: give FACTOR or MUSCLE=FACTOR") from None
+        if not (math.isfinite(factor) and factor > 0):
+            raise argparse.ArgumentTypeError(f"{item!r}: a strength factor must be positive")
+        scales[name] = scales.get(name, 1.0) * factor
+    if not scales:
+        raise argparse.ArgumentTypeError(f"{text!r}: give FACTOR or MUSCLE=FACTOR")
+    return scales
+
+
+def add_strength_option(parser) -> None:
+    parser.add_argument("--strength", type=strength_option, metavar="F|MUSCLE=F,...",
+                        help="scale muscles' peak stress (their force-length curves), all (F) or by name "
+                             "(MUSCLE=F): exaggerates beyond the physical range, activations staying in [0, 1]")
 
 
 def _coarse_model(args):
-    """The model named by ``--coarse``: a number is a built-in face resolution, else a folder."""
+    """The model named by ``--coarse``: a number is a built-in face resolution, else a folder; with
+    the same ``--strength`` as the fine one."""
     if not args.coarse:
         return None
     from face_dolfinx.model.anatomy import build_builtin_face
@@ -80,8 +107,10 @@ def _coarse_model(args):
     if args.coarse.isdigit():
         if args.model:
             raise SystemExit("--coarse TETS builds the built-in face; with --model give a coarse model folder")
-        return load_model(build_builtin_face(target_tets=int(args.coarse)), MPI.COMM_WORLD)
-    return load_model(pathlib.Path(args.coarse), MPI.COMM_WORLD)
+        model = load_model(build_builtin_face(target_tets=int(args.coarse)), MPI.COMM_WORLD)
+    else:
+        model = load_model(pathlib.Path(args.coarse), MPI.COMM_WORLD)
+    return model.with_strength(args.strength) if args.strength else model
 
 
 def _expression_controls(model, name: str):
@@ -269,7 +298,8 @@ def fit(model, args) -> None:
         folder = tracker.open_folder(args.out, capture, placement, chunks=args.chunks, overwrite=args.overwrite,
                                      truth_file=truth_file if truth_file.exists() else None, setup=setup,
                                      take_frames=take_frames,
-                                     extra=dict(correspondence=correspondence, take_frame_selection=args.frames))
+                                     extra=dict(correspondence=correspondence, take_frame_selection=args.frames,
+                                                strength=args.strength))
     except FitFolderError as error:
         raise SystemExit(str(error)) from None
     if folder.finished:
@@ -421,6 +451,7 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--out", default="results/simulate", help="result folder")
     p.add_argument("--overwrite", action="store_true", help="replace an existing result folder")
     p.add_argument("--no-render", action="store_true", help="skip the PNG renders")
+    add_strength_option(p)
     p.add_argument("--coarse", metavar="TETS|FOLDER",
                    help="start each solve from the equilibrium of a coarse model of the same face: "
                         "the built-in face at TETS tets, or a model folder (docs/performance.md: "
@@ -459,6 +490,7 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
         p.add_argument("--tets", type=int, default=20_000, help="built-in face resolution")
         p.add_argument("--out", default=out, help="output path")
         p.add_argument("--overwrite", action="store_true", help="replace existing output")
+        add_strength_option(p)
 
     p = sub.add_parser("synth", help="synthetic take with known truth")
     model_options(p, "takes/speech.trc")

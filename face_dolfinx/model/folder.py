@@ -14,7 +14,7 @@ import difflib
 import math
 import re
 import tomllib
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -125,6 +125,28 @@ class FaceModel:
         close = difflib.get_close_matches(name, names, n=4, cutoff=0.5)
         hint = f"; did you mean {', '.join(close)}?" if close else f"; known: {', '.join(names)}"
         raise ModelError(f"{self.path}: unknown muscle {name!r}{hint}")
+
+    def peak_stress(self, index: int) -> float:
+        """sigma_max of muscle ``index`` (kPa): its own value or the model's default fiber stress."""
+        own = self.muscles[index].peak_stress
+        return own if own is not None else self.material.get("fiber_stress", 300.0)
+
+    def with_strength(self, scales: dict[str, float]) -> "FaceModel":
+        """This model with muscles' peak stresses scaled, i.e. their force-length curves: how
+        sifakis2005 section 9 exaggerates an expression beyond the physical range, never by an
+        activation above 1. ``scales``: {muscle name: factor}, the key "all" for every muscle
+        (factors multiply); each factor > 0."""
+        factors = np.ones(len(self.muscles))
+        for name, factor in scales.items():
+            if not (np.isfinite(factor) and factor > 0):
+                raise ModelError(f"{self.path}: strength of {name} must be a positive number, not {factor!r}")
+            if name == "all":
+                factors *= factor
+            else:
+                factors[self.muscle_index(name)] *= factor
+        muscles = [replace(muscle, peak_stress=factor * self.peak_stress(index))
+                   for index, (muscle, factor) in enumerate(zip(self.muscles, factors))]
+        return replace(self, muscles=muscles)
 
     def skin_surface(self) -> tuple[np.ndarray, np.ndarray]:
         """Points (n, 3) and triangles (m, 3) of the facets tagged skin, on EVERY rank.

@@ -90,16 +90,10 @@ def _cell_tags(mesh, cells) -> dolfinx_mesh.MeshTagsMetaClass:
     return dolfinx_mesh.meshtags(mesh, mesh.topology.dim, cells, np.ones_like(cells))
 
 
-def peak_stress(model, index: int) -> float:
-    """sigma_max of muscle ``index``: its own value or the model's default fiber stress."""
-    own = model.muscles[index].peak_stress
-    return own if own is not None else model.material.get("fiber_stress", 300.0)
-
-
 def build_muscle_slots(model, mesh) -> MuscleSlots:
     entries_cell, entries_muscle, entries_weight, entries_fiber = [], [], [], []
     for index, muscle in enumerate(model.muscles):
-        stress = peak_stress(model, index)
+        stress = model.peak_stress(index)
         entries_cell.append(np.asarray(muscle.cells, dtype=np.int64))
         entries_muscle.append(np.full(len(muscle.cells), index))
         entries_weight.append(stress * np.asarray(muscle.fraction, dtype=float))
@@ -412,7 +406,7 @@ class FaceProblem:
         return out
 
     def peak_stress(self, muscle: int) -> float:
-        return peak_stress(self.model, muscle)
+        return self.model.peak_stress(muscle)
 
     def energy(self) -> float:
         return self.solver.energy()
