@@ -92,7 +92,9 @@ degree = 2
     ("[fit]\ngn-steps = 2\ngn_steps = 3\n", r"bad\.toml: \[fit\] sets 'gn-steps' twice \('gn-steps' and 'gn_steps'\)"),
     ("tets = 'many'\n", r"bad\.toml: tets must be an integer, not 'many'"),
     ("[fit]\nneutral-frame = 'rest'\n", r"bad\.toml: \[fit\] neutral-frame: 'rest': give a frame number or 'typical'"),
-    ("[fit]\nneutral-frame = 2.5\n", r"bad\.toml: \[fit\] neutral-frame must be a number or a word, not 2\.5"),
+    ("[fit]\nneutral-frame = 2.5\n", r"bad\.toml: \[fit\] neutral-frame: '2\.5': give a frame number or 'typical'"),
+    ("[fit]\nstrength = [2]\n", r"bad\.toml: \[fit\] strength must be a number or a word, not \[2\]"),
+    ("[fit]\nstrength = 'mentalis_left=0'\n", r"bad\.toml: \[fit\] strength: 'mentalis_left=0': a strength factor must be positive"),
     ("[fit]\nconfig = 'other.toml'\n", r"bad\.toml: unknown key 'config' in \[fit\]"),
     ("[fit\n", r"bad\.toml: malformed TOML"),
 ])

@@ -54,9 +54,14 @@ def test_exaggeration_goes_beyond_full_activation(model):
     assert any(plain > 1.0 for plain, _ in moved)
 
 
-def test_strength_option_and_its_mistakes(model):
+def test_strength_option_and_its_mistakes(model, tmp_path):
     args, _ = parse_arguments(["simulate", "smile", "--strength", "1.5, mentalis_left=2,mentalis_left=1.5"])
     assert args.strength == {"all": 1.5, "mentalis_left": 3.0}
+    config = pathlib.Path(MPI.COMM_WORLD.bcast(str(tmp_path), root=0)) / "run.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        config.write_text("[simulate]\nstrength = 1.5\n")
+    MPI.COMM_WORLD.barrier()
+    assert parse_arguments(["simulate", "smile", "--config", str(config)])[0].strength == {"all": 1.5}
     for bad in ("0", "-1", "mentalis_left=x", ","):
         with pytest.raises(SystemExit):
             parse_arguments(["simulate", "smile", "--strength", bad])

@@ -140,7 +140,7 @@ def _single(action: argparse.Action, value, where: str):
             raise ConfigError(f"{where} must be a number, not {value!r}")
         value = float(value)
     elif kind is not None and kind is not str:  # an option's own parser, e.g. a number or a word
-        if isinstance(value, bool) or not isinstance(value, (int, str)):
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
             raise ConfigError(f"{where} must be a number or a word, not {value!r}")
         try:
             value = kind(str(value))
