@@ -118,9 +118,15 @@ def test_active_stress_is_Ta_along_the_rest_fiber(law_at_constant_F):
 def test_helix_fiber_follows_the_benchmark_definition():
     # Independent of the Cartesian form in land2015.helix_fiber: tangents of the parametrisation
     # x = (r_s sin mu cos theta, r_s sin mu sin theta, r_l cos mu), r_s = 7 + 3t, r_l = 17 + 3t.
+    # Besides points across the wall, points a few micrometres from the axis (the apex, where the
+    # frame turns fastest and the endocardial fiber is radial) and on the base plane z = 5.
     x = ufl.SpatialCoordinate(dmesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1))
     fiber, transmural = land2015.helix_fiber(x), land2015.transmural_coordinate(x)
-    for t, mu, theta in [(0.0, -2.0, 0.3), (0.25, -2.5, 1.0), (0.5, -1.2, 4.0), (1.0, -0.9, 2.0)]:
+    near_apex = [(0.0, -math.pi + 1e-3, 0.3), (0.6, -math.pi + 1e-4, 5.5),
+                 (1.0, -math.pi + 1e-3, 2.0)]
+    on_base = [(t, -math.acos(land2015.BASE_Z / (17.0 + 3.0 * t)), 1.3) for t in (0.0, 0.35)]
+    across_wall = [(0.0, -2.0, 0.3), (0.25, -2.5, 1.0), (0.5, -1.2, 4.0), (1.0, -0.9, 2.0)]
+    for t, mu, theta in across_wall + near_apex + on_base:
         r_s, r_l = 7.0 + 3.0 * t, 17.0 + 3.0 * t
         point = (r_s * math.sin(mu) * math.cos(theta), r_s * math.sin(mu) * math.sin(theta),
                  r_l * math.cos(mu))
