@@ -206,3 +206,38 @@ def test_object_starting_inside_is_refused():
         FaceProblem(skin_slab(cells=(8, 4, 2)), contact=settings)
     with pytest.raises(ValueError, match="no facets tagged 'lips'"):
         FaceProblem(skin_slab(cells=(8, 4, 2)), contact=ContactSettings((Sphere(1.0),), surface="lips"))
+
+
+def test_sphere_pressed_into_the_cheek_of_the_small_face(model):
+    """The paper's figure 9 on the 5K face: a ball pressed 4 mm into the left cheek of a face with
+    the left zygomaticus major on. Newton never leaves a node inside the ball, the equilibrium holds,
+    the bones carry the ball's force."""
+    points, triangles = model.skin_surface()
+    site = model.markers["nasolabial_left_3"]
+    corners = points[triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # outward, area-weighted
+    near = np.linalg.norm(corners.mean(axis=1) - site, axis=1) < 12.0
+    normal = normals[near].sum(axis=0)
+    normal /= np.linalg.norm(normal)
+    radius = 15.0
+
+    def ball(depth):
+        return AffineMap(np.eye(3), site + (radius - depth) * normal)
+
+    problem = FaceProblem(model, contact=ContactSettings((Sphere(radius),), (ball(-1.0),), dhat=0.05, stiffness=10.0))
+    activations = {"zygomaticus_major_left": 0.5}
+    problem.solve(activations=activations)
+    gaps = []
+    problem.solver.snes.setMonitor(lambda snes, it, norm: gaps.append(problem.contact.min_gap(snes.getSolution().array_r)))
+    report = problem.solve(objects=(ball(4.0),))
+    problem.solver.snes.cancelMonitor()
+    assert report.converged and min(gaps) > 0.0
+    assert problem.contact.contact_nodes(problem.u.x.array) >= 3
+    on_ball = problem.contact.nodal_forces(problem.u.x.array).sum(axis=0)
+    assert on_ball @ normal > 10.0  # mN: the cheek pushes the ball back out
+    internal = fem_petsc.create_vector(problem.solver.residual_form)
+    fem_petsc.assemble_vector(internal, problem.solver.residual_form)
+    internal.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    owned = problem.bone_blocks[problem.bone_blocks < problem.V.dofmap.index_map.size_local]
+    reaction = MPI.COMM_WORLD.allreduce(internal.array_r.reshape(-1, 3)[owned].sum(axis=0), op=MPI.SUM)
+    assert np.abs(reaction - on_ball).max() <= 1e-5 * np.abs(on_ball).max()

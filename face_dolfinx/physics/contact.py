@@ -25,7 +25,7 @@ adds the terms of the nodes it owns. ``ContactPotential`` is the solver's extra 
 (``QuasistaticSolver(energy_terms=...)``): energy, gradient into the residual, Hessian into the
 tangent, step bound next to the inversion guard's.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -141,7 +141,7 @@ class ContactSettings:
     dhat: float = 0.05
     stiffness: float = 10.0
     surface: str = "skin"
-    where: str = field(default="the contact settings")  # named in error messages (a file, an option)
+    where: str = "the contact settings"  # named in error messages (a file, an option)
 
     def rest_poses(self) -> tuple:
         return tuple(self.poses) if self.poses else tuple(AffineMap() for _ in self.objects)
@@ -203,7 +203,9 @@ class ContactSurface:
         self.owned_nodes = surface_index(owned_global)  # ... and their surface indices
         self._counts = np.array(self.comm.allgather(3 * len(owned)))
         self._gathered_nodes = np.concatenate(self.comm.allgather(self.owned_nodes))
-        self.owned_global_blocks = owned_global
+        # Owned and ghost nodes (a Dirichlet condition on nodes must hold on every rank that sees them).
+        self.local_blocks = np.unique(local_triangles)
+        self.local_nodes = surface_index(index_map.local_to_global(self.local_blocks))
 
     def gather(self, values: np.ndarray) -> np.ndarray:
         """(num_nodes, 3) of a blocked dof array (owned part at least), from every rank."""
@@ -255,12 +257,12 @@ class ContactPotential:
         gaps = self.gaps(displacement)
         return float(gaps.min()) if gaps.size else np.inf
 
-    def check_clear(self, displacement: np.ndarray, what: str = "at rest") -> None:
-        """A clear error if an object overlaps the surface or touches it (gap <= 0)."""
+    def check_clear(self, displacement: np.ndarray) -> None:
+        """A clear error if an object at its pose overlaps the surface or touches it (gap <= 0)."""
         for obj, pose, gap in zip(self.objects, self.poses, self.gaps(displacement)):
             if gap.min() <= 0.0:
                 raise ValueError(f"{self.settings.where}: the {obj.describe()} at {pose.translation.round(3).tolist()} "
-                                 f"starts inside the {self.settings.surface} {what} ({int((gap <= 0).sum())} "
+                                 f"starts inside the {self.settings.surface} ({int((gap <= 0).sum())} "
                                  f"nodes, deepest {-gap.min():.3g} mm): place it outside")
 
     def contact_nodes(self, displacement: np.ndarray) -> int:
@@ -335,18 +337,48 @@ class ContactPotential:
         return fraction
 
     # -- moving the objects ------------------------------------------------------------------
-    def push_out(self, displacement: np.ndarray, poses) -> np.ndarray:
-        """The displacement with every owned node that the objects at ``poses`` would leave closer
-        than PUSH_GAP * dhat moved out along the object's normal to that gap: a start for Newton
-        that overlaps no object (local dof array, owned part changed; ghosts need an update)."""
+    def push_out(self, displacement: np.ndarray, poses) -> tuple[np.ndarray, np.ndarray]:
+        """The displacement with every node that the objects at ``poses`` would leave closer than
+        PUSH_GAP * dhat moved out along the object's normal to that gap (a start that overlaps no
+        object; local dof array, owned part changed, ghosts need an update), and the nodes to hold
+        while the flesh follows: those and every node within the objects' move of them (the flesh
+        a dent displaces bulges up around it, into the object's way)."""
         out = displacement.copy()
         x = self.positions(displacement)
-        for obj, pose in zip(self.objects, poses):
-            gap, normal, _ = obj.gaps(x, pose)
-            target = PUSH_GAP * self.dhat
+        held = np.zeros(len(x), dtype=bool)
+        target = PUSH_GAP * self.dhat
+        for obj, old, new in zip(self.objects, self.poses, poses):
+            reach = target + np.linalg.norm(new.compose(old.inverse()).apply(x) - x, axis=1).max(initial=0.0)
+            gap, normal, _ = obj.gaps(x, new)
             close = gap < target
             x[close] += (target - gap[close])[:, None] * normal[close]
+            held |= gap < reach
         moved = x - self.surface.rest
         values = out.reshape(-1, 3)
         values[self.surface.owned_blocks] = moved[self.surface.owned_nodes]
-        return out
+        return out, np.flatnonzero(held)
+
+    def move_to(self, poses, solver) -> int:
+        """Put the objects at ``poses``, first pushing the surface out of them (``push_out``) and
+        carrying the flesh along by a Newton solve of ``solver`` (whose unknown is the displacement)
+        with the pushed nodes and their neighbourhood held where they are put: that spreads the dent smoothly into the
+        flesh, as the lifting of a bone motion does, where Newton from the bare push-out crawls in
+        collision-limited steps while the flesh pulls the dent back node by node. The state it
+        leaves overlaps no object; the solve that follows releases the nodes. Returns the Newton
+        iterations it took."""
+        u = solver.unknown
+        u.x.array[:], nodes = self.push_out(u.x.array, poses)
+        u.x.scatter_forward()
+        self.set_poses(poses)
+        solver.controls_changed()
+        if not nodes.size:
+            return 0
+        values = fem.Function(u.function_space)
+        values.x.array[:] = u.x.array
+        held = fem.dirichletbc(values, self.surface.local_blocks[np.isin(self.surface.local_nodes, nodes)])
+        solver.bcs.append(held)
+        try:
+            return solver.newton()[1]
+        finally:
+            solver.bcs.remove(held)
+            solver.controls_changed()

@@ -24,7 +24,7 @@ muscle (32 terms of piecewise curves make FFCx slow and the kernels long), each 
 weight sigma_max * fraction and the activation of the k-th muscle present there. The forms see K
 fiber terms whatever the number of muscles; activations are scattered into the slots.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import logging
 import time
 
@@ -398,11 +398,11 @@ class FaceProblem:
             # A long linear prediction can invert elements: pull it back towards the equilibrium.
             fraction = self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - guess)
             self.u.x.array[:] = equilibrium + fraction * (guess - equilibrium)
-            self._clear_objects(target.objects)
+            held = self._clear_objects(target.objects)
             self.set_controls(target)
             ok, iterations, why = self.solver.newton()
             if ok:
-                return SolveReport(True, iterations, 1, why, time.perf_counter() - began)
+                return SolveReport(True, held + iterations, 1, why, time.perf_counter() - began)
             log.info("Newton from the predicted shape failed (%s); continuing from the last "
                      "equilibrium", why)
             self.u.x.array[:] = equilibrium
@@ -411,24 +411,24 @@ class FaceProblem:
         def controls_at(t):
             self.set_controls(start.interpolate(target, t))
 
+        held = []  # Newton iterations of the objects' moves
+
         def predictor(t0, t1):
             old = start.cranium.interpolate(target.cranium, t0)
             new = start.cranium.interpolate(target.cranium, t1)
             if not old.same_as(new):
                 self._move_rigidly(old, new)
-            self._clear_objects(start.interpolate(target, t1).objects)
+            held.append(self._clear_objects(start.interpolate(target, t1).objects))
 
         report = self.solver.solve_continuation(controls_at, predictor=predictor,
                                                 max_halvings=max_halvings)
         self.set_controls(target)
-        return report
+        return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
 
-    def _clear_objects(self, poses) -> None:
-        """Push the contact surface out of the objects at ``poses`` (a start Newton's barrier
-        accepts; contact.ContactPotential.push_out)."""
-        if self.contact is not None:
-            self.u.x.array[:] = self.contact.push_out(self.u.x.array, poses)
-            self.u.x.scatter_forward()
+    def _clear_objects(self, poses) -> int:
+        """Move the objects to ``poses`` (``ContactPotential.move_to``): a start that Newton's
+        barrier accepts, near the equilibrium. Returns the Newton iterations it took."""
+        return self.contact.move_to(poses, self.solver) if self.contact is not None else 0
 
     def active_force(self, muscle: int, out: PETSc.Vec | None = None) -> PETSc.Vec:
         """f_i = df/da_i at the current shape (zero on Dirichlet dofs): the right-hand side of
