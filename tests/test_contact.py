@@ -212,17 +212,12 @@ def test_sphere_pressed_into_the_cheek_of_the_small_face(model):
     """The paper's figure 9 on the 5K face: a ball pressed 4 mm into the left cheek of a face with
     the left zygomaticus major on. Newton never leaves a node inside the ball, the equilibrium holds,
     the bones carry the ball's force."""
-    points, triangles = model.skin_surface()
-    site = model.markers["nasolabial_left_3"]
-    corners = points[triangles]
-    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # outward, area-weighted
-    near = np.linalg.norm(corners.mean(axis=1) - site, axis=1) < 12.0
-    normal = normals[near].sum(axis=0)
-    normal /= np.linalg.norm(normal)
     radius = 15.0
+    outside, inside = _cheek_path(model, [0.0, 1.0], radius)
+    normal = (outside - inside) / np.linalg.norm(outside - inside)
 
     def ball(depth):
-        return AffineMap(np.eye(3), site + (radius - depth) * normal)
+        return AffineMap(np.eye(3), _cheek_path(model, [depth], radius)[0])
 
     problem = FaceProblem(model, contact=ContactSettings((Sphere(radius),), (ball(-1.0),), dhat=0.05, stiffness=10.0))
     activations = {"zygomaticus_major_left": 0.5}
@@ -241,3 +236,48 @@ def test_sphere_pressed_into_the_cheek_of_the_small_face(model):
     owned = problem.bone_blocks[problem.bone_blocks < problem.V.dofmap.index_map.size_local]
     reaction = MPI.COMM_WORLD.allreduce(internal.array_r.reshape(-1, 3)[owned].sum(axis=0), op=MPI.SUM)
     assert np.abs(reaction - on_ball).max() <= 1e-5 * np.abs(on_ball).max()
+
+
+def _cheek_path(model, depths, radius=15.0):
+    """Sphere centres along the outward normal (area-weighted, of the skin triangles oriented out)
+    of the left cheek, at these depths into the skin."""
+    points, triangles = model.skin_surface()
+    site = model.markers["nasolabial_left_3"]
+    corners = points[triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normal = normals[np.linalg.norm(corners.mean(axis=1) - site, axis=1) < 12.0].sum(axis=0)
+    normal /= np.linalg.norm(normal)
+    return [site + (radius - depth) * normal for depth in depths]
+
+
+def test_simulate_moves_a_sphere_along_a_path(model, builtin_model_path, shared_dir):
+    """run.py simulate --object sphere:15 --path FILE: a frame per pose, the object's series, and
+    one clear error for a path that starts inside the face or a malformed line."""
+    import json
+    from face_dolfinx.cli.main import main
+    path, out = shared_dir / "path.txt", shared_dir / "pressed"
+    centres = _cheek_path(model, [-1.0, 2.0, 4.0, 0.0])
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text("# x y z\n" + "\n".join(" ".join(f"{v:.6f}" for v in c) for c in centres) + "\n")
+    MPI.COMM_WORLD.barrier()
+    assert main(["simulate", "--model", str(builtin_model_path), "--object", "sphere:15", "--path", str(path),
+                 "--out", str(out), "--no-render"]) == 0
+    rows = json.loads((out / "summary.json").read_text())["object"]
+    assert [row["pose"] for row in rows] == [0, 1, 2, 3]
+    assert rows[2]["contact_nodes"] >= 3 and rows[2]["min_gap_mm"] > 0.0
+    assert rows[3]["contact_nodes"] == 0  # the sphere has left again
+    assert (out / "object.xdmf").exists() and (out / "object.h5").exists()
+    inside = shared_dir / "inside.txt"
+    if MPI.COMM_WORLD.rank == 0:
+        inside.write_text(" ".join(f"{v:.6f}" for v in _cheek_path(model, [3.0])[0]) + "\n")
+        (shared_dir / "bad.txt").write_text("1 2 3\n4 five 6\n")
+    MPI.COMM_WORLD.barrier()
+    with pytest.raises(SystemExit, match="inside.txt .its first pose.: the sphere of radius 15 mm .* starts inside the skin"):
+        main(["simulate", "--model", str(builtin_model_path), "--object", "sphere:15", "--path", str(inside),
+              "--out", str(shared_dir / "never"), "--no-render"])
+    with pytest.raises(SystemExit, match="bad.txt, line 2: expected the three coordinates"):
+        main(["simulate", "--model", str(builtin_model_path), "--object", "sphere:15", "--path",
+              str(shared_dir / "bad.txt"), "--out", str(shared_dir / "never"), "--no-render"])
+    with pytest.raises(SystemExit, match="give sphere:RADIUS"):
+        main(["simulate", "--model", str(builtin_model_path), "--object", "cube:3", "--path", str(path),
+              "--out", str(shared_dir / "never"), "--no-render"])

@@ -102,6 +102,25 @@ class Sphere:
     def describe(self) -> str:
         return f"sphere of radius {self.radius:g} mm"
 
+    def surface(self, refinements: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """Points and triangles of an icosphere on the sphere (in its frame), for output."""
+        t = (1.0 + 5.0 ** 0.5) / 2.0
+        points = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+                           [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], dtype=float)
+        triangles = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+                              [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+                              [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+        for _ in range(refinements):
+            edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+            unique, index = np.unique(edges, axis=0, return_inverse=True)
+            mid = len(points) + index.reshape(3, -1)
+            points = np.vstack([points, 0.5 * (points[unique[:, 0]] + points[unique[:, 1]])])
+            a, b, c = triangles.T
+            triangles = np.vstack([np.c_[a, mid[0], mid[2]], np.c_[b, mid[1], mid[0]],
+                                   np.c_[c, mid[2], mid[1]], np.c_[mid[0], mid[1], mid[2]]])
+        points *= self.radius / np.linalg.norm(points, axis=1)[:, None]
+        return points, triangles
+
 
 @dataclass(frozen=True)
 class HalfSpace:
@@ -128,6 +147,32 @@ class HalfSpace:
 
     def describe(self) -> str:
         return f"half-space with normal {tuple(float(v) for v in self.normal)}"
+
+
+def read_path(path) -> list[AffineMap]:
+    """Poses of an object over time from a text file: one line per pose with the x y z (mm, model
+    frame) of the object's origin, separated by spaces or commas; ``#`` starts a comment. One clear
+    error naming the file and line for anything else."""
+    poses = []
+    try:
+        lines = open(path).read().splitlines()
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read the object's path ({error.strerror})") from None
+    for number, line in enumerate(lines, start=1):
+        text = line.split("#", 1)[0].replace(",", " ").split()
+        if not text:
+            continue
+        try:
+            values = np.array([float(v) for v in text])
+        except ValueError:
+            values = np.array([np.nan])
+        if values.shape != (3,) or not np.isfinite(values).all():
+            raise ValueError(f"{path}, line {number}: expected the three coordinates x y z (mm) of a pose, "
+                             f"got {line.strip()!r}")
+        poses.append(AffineMap(np.eye(3), values))
+    if not poses:
+        raise ValueError(f"{path}: no poses (one line of x y z per pose)")
+    return poses
 
 
 @dataclass
