@@ -3,7 +3,8 @@
 Subcommands:
   build     generate the built-in face at a resolution and print the model folder; with --subject
             (a capture) or --surface (a scan), the face adapted to a subject
-  simulate  equilibrium shapes for named expressions -> XDMF + PNG
+  simulate  equilibrium shapes for named expressions -> XDMF + PNG; with --object and --path, a
+            rigid object moved along a path against the face (docs/contact.md)
   synth     a synthetic take of known truth (markers with noise, outliers, gaps) -> TRC/CSV/C3D
   fit       a take -> activations, head and jaw motion per frame (resumable), tables and report;
             a capture of your own is aligned to the model first (--correspondence, or ICP)
@@ -126,10 +127,12 @@ def _expression_controls(model, name: str):
 
 
 def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 1,
-             overwrite: bool = False, render: bool = True, coarse_model=None) -> list[dict]:
+             overwrite: bool = False, render: bool = True, coarse_model=None, contact=None) -> list[dict]:
     """Solve each expression from the previous equilibrium and write one result folder. With a
     ``coarse_model`` of the same face, each solve starts from the coarse model's equilibrium
-    (``face_dolfinx.equilibrium.coarse``)."""
+    (``face_dolfinx.equilibrium.coarse``). ``contact``: (``ContactSettings`` of one object, its
+    poses): the object starts at the first pose, the expressions are solved against it, then it
+    moves along the rest of the poses, one frame each (object.xdmf shows it)."""
     from face_dolfinx.equilibrium.coarse import CoarseStart
     from face_dolfinx.files import atomic_directory
     from face_dolfinx.results.xdmf import FaceWriter
@@ -137,8 +140,10 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
     comm = MPI.COMM_WORLD
     for name in expressions:  # fail before any work, not halfway through
         _expression_controls(model, name)
+    if contact is not None and coarse_model is not None:
+        raise SystemExit("--object and --coarse do not go together: the coarse model has no contact")
     start = time.perf_counter()
-    problem = FaceProblem(model, degree=degree)
+    problem = FaceProblem(model, degree=degree, contact=contact[0] if contact is not None else None)
     solver = problem
     if coarse_model is not None:
         solver = CoarseStart(FaceProblem(coarse_model), problem)
@@ -166,12 +171,75 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
                 writer.write(float(step))
                 if render:
                     _render_expression(problem, staging / f"{step:02d}_{name}.png", name)
+            object_rows = (_move_object(problem, contact[1], writer, staging / "object.xdmf", len(expressions))
+                           if contact is not None else None)
         if comm.rank == 0:
             (staging / "summary.json").write_text(json.dumps(
-                dict(model=str(model.path), expressions=rows, ranks=comm.size,
+                dict(model=str(model.path), expressions=rows, object=object_rows, ranks=comm.size,
                      coarse_model=str(coarse_model.path) if coarse_model is not None else None),
                 indent=2))
     return rows
+
+
+def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -> list[dict]:
+    """The contact object along ``poses`` (the first is where it stands), one solve and one face
+    frame per pose; the object's surface as its own XDMF series (a fan of tetrahedra from its
+    centre, moved by a displacement field: ParaView's Warp By Vector shows it in place)."""
+    from face_dolfinx.results.xdmf import XdmfSeries
+    comm = MPI.COMM_WORLD
+    contact = problem.contact
+    points, triangles = contact.objects[0].surface()
+    points = np.vstack([points, np.zeros(3)])
+    cells = np.c_[np.full(len(triangles), len(points) - 1), triangles]
+    series = XdmfSeries(path, points, cells) if comm.rank == 0 else None
+    rows = []
+    try:
+        for index, pose in enumerate(poses):
+            frame = first_frame + index
+            report = problem.solve(objects=(pose,)) if index else None
+            force = contact.nodal_forces(problem.u.x.array).sum(axis=0)
+            row = dict(pose=index, centre_mm=pose.translation.round(4).tolist(),
+                       newton_iterations=report.newton_iterations if report else 0,
+                       load_steps=report.load_steps if report else 0,
+                       seconds=round(report.seconds, 3) if report else 0.0,
+                       force_on_object_mN=force.round(4).tolist(),
+                       min_gap_mm=round(contact.min_gap(problem.u.x.array), 6),
+                       contact_nodes=contact.contact_nodes(problem.u.x.array))
+            rows.append(row)
+            log.info("object pose %d: Newton %d its, force %.3f mN, min gap %.4f mm, %d contact nodes", index,
+                     row["newton_iterations"], float(np.linalg.norm(force)), row["min_gap_mm"], row["contact_nodes"])
+            if index:
+                writer.write(float(frame))
+            if series is not None:
+                series.write(float(frame), {"displacement": pose.apply(points) - points}, {})
+    except BaseException:
+        if series is not None:
+            series.abort()
+        raise
+    if series is not None:
+        series.close()
+    return rows
+
+
+def _object_from_args(args):
+    """(ContactSettings, poses) of ``--object sphere:RADIUS --path FILE``, or None."""
+    if args.object is None and args.path is None:
+        return None
+    if args.object is None or args.path is None:
+        raise SystemExit("--object and --path go together")
+    from face_dolfinx.physics.contact import ContactSettings, Sphere, read_path
+    kind, _, size = args.object.partition(":")
+    try:
+        radius = float(size)
+    except ValueError:
+        radius = math.nan
+    if kind != "sphere" or not radius > 0.0:
+        raise SystemExit(f"--object {args.object}: give sphere:RADIUS (mm), e.g. sphere:15")
+    try:
+        poses = read_path(args.path)
+    except ValueError as error:
+        raise SystemExit(str(error)) from None
+    return ContactSettings((Sphere(radius),), (poses[0],), where=f"{args.path} (its first pose)"), poses
 
 
 def synth(model, args) -> None:
@@ -456,6 +524,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="start each solve from the equilibrium of a coarse model of the same face: "
                         "the built-in face at TETS tets, or a model folder (docs/performance.md: "
                         "15 degree jaw opening at 404K tets 5x faster from the 50K face)")
+    p.add_argument("--object", metavar="sphere:RADIUS",
+                   help="a rigid sphere (radius in mm) pressed against the skin along --path (docs/contact.md)")
+    p.add_argument("--path", metavar="FILE",
+                   help="the object's centre over time: one 'x y z' line (mm, model frame) per frame")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     p = sub.add_parser("demo", help="the main job: build the face, synthesise a take, fit it",
@@ -600,7 +672,8 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
         sub.choices[args.command].set_defaults(**command_defaults)
         args, petsc_args = parser.parse_known_args(argv)
     for command, positional in (("fit", "capture"), ("simulate", "expressions")):
-        if args.command == command and not getattr(args, positional):
+        moving_an_object = command == "simulate" and getattr(args, "path", None) is not None
+        if args.command == command and not getattr(args, positional) and not moving_an_object:
             sub.choices[command].error(f"the {positional} argument is required (on the command line or "
                                        f"as {positional!r} in the --config file)")
     if args.command == "build" and (args.subject or args.surface):
@@ -659,8 +732,14 @@ def _main(argv=None) -> int:
         fit(model, args)
         return 0
     out = pathlib.Path(args.out)
-    rows = simulate(model, args.expressions, out, degree=args.degree, overwrite=args.overwrite,
-                    render=not args.no_render, coarse_model=_coarse_model(args))
+    contact = _object_from_args(args)
+    try:
+        rows = simulate(model, args.expressions, out, degree=args.degree, overwrite=args.overwrite,
+                        render=not args.no_render, coarse_model=_coarse_model(args), contact=contact)
+    except ValueError as error:
+        if contact is None:
+            raise
+        raise SystemExit(str(error)) from None
     if MPI.COMM_WORLD.rank == 0:
         print(f"results: {out.resolve()} ({len(rows)} expressions; face.xdmf for ParaView, PNG renders)")
     return 0

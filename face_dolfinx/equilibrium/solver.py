@@ -29,6 +29,13 @@ an iteration then costs a residual and a solve instead of an assembly and a fact
 ``factor_distance()`` says how far the unknown has moved from the state whose tangent the factor
 holds, for callers that can use a nearby tangent (approximate Jacobians).
 
+Energy terms evaluated outside UFL (``energy_terms``, e.g. the contact barrier of
+``face_dolfinx.physics.contact``) add to the total energy: each gives its energy, adds its gradient to
+the residual and its Hessian to the assembled tangent (so the tangent stays that of one energy), and
+bounds each Newton step next to the inversion guard (``step_fraction``: no line-search point may
+leave the term's domain, e.g. penetrate an object). Without them the solver does exactly what it
+does with none.
+
 The tangent's structure is a setting (``tangent``): "spd" for the face, whose symmetric tangent
 MUMPS factorises without pivoting (with a pivoting retry after a zero pivot), "symmetric" for a
 symmetric indefinite one, "general" for a non-symmetric one (a follower load). Every option is a
@@ -370,6 +377,11 @@ class QuasistaticSolver:
     (optional) is the total potential, for reports and checks. The line search does not
     backtrack on it: near equilibrium its changes drown in round-off and stall the search.
     ``reuse_policy`` decides when Newton refactorises (default: ``FactorReusePolicy()``).
+    ``energy_terms``: energies outside UFL, each with ``energy(x)``, ``add_gradient(x, b)``,
+    ``add_hessian(x, A, constrained)`` (A assembled; ``constrained``: the owned local Dirichlet dofs,
+    whose rows and columns it leaves alone) and ``step_fraction(x, step, largest)`` (the largest t in
+    (0, 1] such that x - s t largest step stays admissible for s in [0, 1]); x is the unknown's PETSc
+    vector, all collective.
     """
 
     def __init__(self, residual: ufl.Form, unknown: fem.Function, bcs: list, *, tangent: str,
@@ -377,11 +389,13 @@ class QuasistaticSolver:
                  petsc_options: dict | None = None, options_prefix: str = "face_",
                  inversion_guard: InversionGuard | None = None,
                  reuse_policy: FactorReusePolicy | None = None, krylov_on_old_factor: bool = False,
-                 step_tolerance: float = 1e-8, keep_packed_coefficients: bool = False):
+                 step_tolerance: float = 1e-8, keep_packed_coefficients: bool = False,
+                 energy_terms: tuple = ()):
         if tangent not in TANGENT_STRUCTURES:
             raise ValueError(f"tangent = {tangent!r}: give one of {', '.join(TANGENT_STRUCTURES)}")
         self.unknown = unknown
         self.inversion_guard = inversion_guard
+        self.energy_terms = tuple(energy_terms)
         self.reuse_policy = reuse_policy if reuse_policy is not None else FactorReusePolicy()
         # mm: Newton has converged once a correction moves no dof further than this. 1e-8 mm lies
         # far below anything measurable and above the round-off of the corrections.
@@ -428,7 +442,7 @@ class QuasistaticSolver:
                 raise ValueError("krylov_on_old_factor needs reuse_factorization: without it every "
                                  "Newton iteration has a fresh factor and nothing to precondition")
             options.update(KRYLOV_OPTIONS)
-        if inversion_guard is not None:
+        if inversion_guard is not None or self.energy_terms:
             options["snes_linesearch_maxstep"] = GUARDED_MAX_LAMBDA
         PetscOptionsPrefix(options_prefix).replace({**options, **(petsc_options or {})})
         self.snes.setFunction(self._assemble_residual, self._residual_vector)
@@ -461,6 +475,8 @@ class QuasistaticSolver:
             fem_petsc.apply_lifting(target, [self.jacobian_form], bcs=[self.bcs], x0=[self.unknown.vector],
                                     scale=-1.0, coeffs=None if self._packs is None else [self._coefficients(1)])
         target.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        for term in self.energy_terms:
+            term.add_gradient(x, target)
         fem_petsc.set_bc(target, self.bcs, x, -1.0)
         if target is not b:
             target.copy(b)
@@ -476,20 +492,26 @@ class QuasistaticSolver:
         iteration limit."""
         correction_size = step.norm(PETSc.NormType.NORM_INFINITY)
         snapped = self._snap_dirichlet_values(x, step)
-        if self.inversion_guard is None:
+        if self.inversion_guard is None and not self.energy_terms:
             self.reuse_policy.record_correction(correction_size)
             return snapped
-        for source, work in ((x, self._guard_x), (step, self._guard_step)):
-            source.copy(work)
-            work.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-        with self._guard_x.localForm() as x_local, self._guard_step.localForm() as step_local:
-            fraction = self.inversion_guard.step_fraction(
-                x_local.array_r, step_local.array_r, GUARDED_MAX_LAMBDA) / GUARDED_MAX_LAMBDA
+        fraction = 1.0
+        if self.inversion_guard is not None:
+            for source, work in ((x, self._guard_x), (step, self._guard_step)):
+                source.copy(work)
+                work.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+            with self._guard_x.localForm() as x_local, self._guard_step.localForm() as step_local:
+                fraction = self.inversion_guard.step_fraction(
+                    x_local.array_r, step_local.array_r, GUARDED_MAX_LAMBDA) / GUARDED_MAX_LAMBDA
+        if self.reuse_policy.fresh_factor:
+            self._guard_cuts = self._guard_cuts + 1 if fraction < STALLED_GUARD_FRACTION else 0
+        # The terms' bounds (a barrier's collision-free step) cut routinely while contact
+        # settles, so they do not count as the guard's stall.
+        for term in self.energy_terms:
+            fraction = min(fraction, term.step_fraction(x, step, GUARDED_MAX_LAMBDA))
         # A step from an old factor that had to be cut says the factor is stale, not that Newton
         # stalls: the next iteration refactorises instead.
         self.reuse_policy.record_correction(correction_size, cut=fraction < 1.0)
-        if self.reuse_policy.fresh_factor:
-            self._guard_cuts = self._guard_cuts + 1 if fraction < STALLED_GUARD_FRACTION else 0
         if fraction < 1.0:
             step.scale(fraction)
             return True
@@ -544,6 +566,8 @@ class QuasistaticSolver:
         A.zeroEntries()
         fem_petsc.assemble_matrix(A, self.jacobian_form, bcs=self.bcs, coeffs=self._coefficients(1))
         A.assemble()
+        for term in self.energy_terms:
+            term.add_hessian(self.unknown.vector, A, self._constrained_dofs())
 
     def _assemble_tangent(self, snes, x, A, P):
         linear_iterations = None
@@ -560,6 +584,13 @@ class QuasistaticSolver:
         self.reuse_policy.factorised(in_newton=True)
         self._factor_controls_current = True
         x.copy(self._factor_state)
+
+    def _constrained_dofs(self) -> np.ndarray:
+        """The owned local dofs of the Dirichlet conditions."""
+        size = self.unknown.vector.getLocalSize()
+        dofs = [bc.dof_indices()[0] for bc in self.bcs]
+        dofs = np.concatenate(dofs) if dofs else np.zeros(0, dtype=np.int32)
+        return dofs[dofs < size]
 
     def _factor(self, A: PETSc.Mat) -> None:
         ksp = self.snes.getKSP()
@@ -609,7 +640,8 @@ class QuasistaticSolver:
     # -- public ------------------------------------------------------------------------------
     def energy(self) -> float:
         """Total energy at the current unknown (NaN if an element is inverted)."""
-        return global_sum(self.comm, fem.assemble_scalar(self.energy_form))
+        return (global_sum(self.comm, fem.assemble_scalar(self.energy_form))
+                + sum(term.energy(self.unknown.vector) for term in self.energy_terms))
 
     def residual_norm(self) -> float:
         """Norm of the free-dof residual at the current unknown (Dirichlet rows excluded)."""

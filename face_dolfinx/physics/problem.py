@@ -6,6 +6,12 @@ constitutive model is ``face_dolfinx.physics.material.FaceMaterial``. Controls
 intraoral pressure) live in DG0 functions, a ``fem.Constant`` and the Dirichlet values, so changing
 them never recompiles a form.
 
+Rigid kinematic objects (``contact``, ``face_dolfinx.physics.contact``: a sphere, a half-space)
+press on a tagged surface (the skin) through a barrier energy the solver adds to the flesh's; their
+poses are controls (``Controls.objects``), each solve pushes the surface out of an object's new pose
+before Newton (the barrier needs a start that overlaps nothing), and the continuation fallback walks
+the poses like the other controls.
+
 The intraoral pressure (``intraoral_pressure=True``, a model with an ``oral`` surface) is the air
 pressure in the mouth above the ambient one, a follower load on the lining of the lips and cheeks:
 positive pushes them out (puffed cheeks, pushed lips), negative draws them in (suction). A follower
@@ -18,7 +24,7 @@ muscle (32 terms of piecewise curves make FFCx slow and the kernels long), each 
 weight sigma_max * fraction and the activation of the k-th muscle present there. The forms see K
 fiber terms whatever the number of muscles; activations are scattered into the slots.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import logging
 import time
 
@@ -34,6 +40,7 @@ import forms
 from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
+from face_dolfinx.physics.contact import ContactPotential, ContactSettings
 from face_dolfinx.physics.material import FaceMaterial, FiberSlot
 
 log = logging.getLogger(__name__)
@@ -41,18 +48,21 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Controls:
-    """Everything that drives the face: activations, cranium frame, jaw frame (rel. cranium) and
-    the intraoral pressure (kPa; 0 on a problem without that control)."""
+    """Everything that drives the face: activations, cranium frame, jaw frame (rel. cranium), the
+    intraoral pressure (kPa; 0 on a problem without that control) and the poses of the contact
+    objects (world frame; empty on a problem without them)."""
 
     activations: np.ndarray
     cranium: AffineMap
     jaw: AffineMap
     pressure: float = 0.0
+    objects: tuple = ()
 
     def interpolate(self, other: "Controls", t: float) -> "Controls":
         return Controls((1 - t) * self.activations + t * other.activations,
                         self.cranium.interpolate(other.cranium, t), self.jaw.interpolate(other.jaw, t),
-                        (1 - t) * self.pressure + t * other.pressure)
+                        (1 - t) * self.pressure + t * other.pressure,
+                        tuple(a.geodesic(b, t) for a, b in zip(self.objects, other.objects)))
 
     @classmethod
     def rest(cls, num_muscles: int) -> "Controls":
@@ -60,12 +70,14 @@ class Controls:
         return cls(np.zeros(num_muscles), AffineMap(), AffineMap())
 
     def copy(self) -> "Controls":
-        return Controls(self.activations.copy(), self.cranium, self.jaw, self.pressure)
+        return Controls(self.activations.copy(), self.cranium, self.jaw, self.pressure, tuple(self.objects))
 
     def same_as(self, other: "Controls") -> bool:
         """The same values exactly."""
         return (np.array_equal(self.activations, other.activations) and self.cranium.same_as(other.cranium)
-                and self.jaw.same_as(other.jaw) and self.pressure == other.pressure)
+                and self.jaw.same_as(other.jaw) and self.pressure == other.pressure
+                and len(self.objects) == len(other.objects)
+                and all(a.same_as(b) for a, b in zip(self.objects, other.objects)))
 
 
 @dataclass
@@ -166,13 +178,16 @@ class FaceProblem:
         ``guess``, which the guard pulls back).
     intraoral_pressure : add the intraoral pressure control (module docstring); the model needs
         facets tagged ``oral``.
+    contact : ``ContactSettings``: rigid objects pressing on the model's facets tagged
+        ``contact.surface`` (module docstring, docs/contact.md); their poses join the controls.
     """
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
                  petsc_options: dict | None = None, reuse_factorization: bool = False,
                  krylov_on_old_factor: bool = False, newton_tolerance: float = 1e-8,
                  refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True,
-                 line_search_iterations: int = 1, intraoral_pressure: bool = False):
+                 line_search_iterations: int = 1, intraoral_pressure: bool = False,
+                 contact: ContactSettings | None = None):
         if line_search_iterations < 1:
             raise ValueError(f"line_search_iterations = {line_search_iterations}: give 1 or more")
         self.model = model
@@ -221,6 +236,10 @@ class FaceProblem:
         # equilibrium.
         # With the follower pressure it is not symmetric (module docstring): LU.
         general = {"pc_type": "lu"} if intraoral_pressure else {}
+        self.contact = (ContactPotential(self.V, self._tagged_facets(contact.surface, contact.where), contact)
+                        if contact is not None else None)
+        if self.contact is not None:
+            self.contact.check_clear(self.u.x.array)
         self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent="general" if intraoral_pressure else "spd",
                                         energy=energy,
                                         petsc_options={"snes_linesearch_max_it": line_search_iterations,
@@ -229,8 +248,9 @@ class FaceProblem:
                                         reuse_policy=FactorReusePolicy(across_solves=reuse_factorization,
                                                                        refresh_contraction=refresh_contraction),
                                         krylov_on_old_factor=krylov_on_old_factor,
-                                        step_tolerance=newton_tolerance, keep_packed_coefficients=True)
-        self.controls = Controls.rest(self.num_muscles)
+                                        step_tolerance=newton_tolerance, keep_packed_coefficients=True,
+                                        energy_terms=(self.contact,) if self.contact is not None else ())
+        self.controls = self.rest_controls()
         self.set_controls(self.controls)
 
     # -- set-up ------------------------------------------------------------------------------
@@ -243,6 +263,19 @@ class FaceProblem:
                              "cheeks), so it has no intraoral pressure control; rebuild a built-in or "
                              "adapted model, or tag that surface in its mesh (docs/model_format.md)")
         return tag
+
+    def _tagged_facets(self, name: str, where: str) -> np.ndarray:
+        """The local facets tagged ``name``; a clear error if the model has none."""
+        tag = self.model.boundary_ids.get(name)
+        facets = self.model.facet_tags.find(tag) if tag is not None else np.zeros(0, dtype=np.int32)
+        if self.comm.allreduce(len(facets), op=MPI.SUM) == 0:
+            raise ValueError(f"{where}: model {self.model.path} has no facets tagged {name!r} to touch the objects")
+        return facets
+
+    def rest_controls(self) -> Controls:
+        """No activation, bones in their rest frames, objects at their rest poses."""
+        objects = self.contact.settings.rest_poses() if self.contact is not None else ()
+        return Controls(np.zeros(self.num_muscles), AffineMap(), AffineMap(), 0.0, objects)
 
     def _bone_dof_blocks(self):
         tags = self.model.facet_tags
@@ -300,7 +333,7 @@ class FaceProblem:
     def reset_to_rest(self) -> None:
         """Zero controls and zero displacement, their exact equilibrium, without a solve
         (``solve`` would walk the controls back from wherever they are)."""
-        self.adopt(Controls.rest(self.num_muscles), np.zeros_like(self.u.x.array))
+        self.adopt(self.rest_controls(), np.zeros_like(self.u.x.array))
 
     def set_controls(self, controls: Controls) -> None:
         """Put ``controls`` into the forms (activations) and the Dirichlet values (bone frames)
@@ -308,10 +341,15 @@ class FaceProblem:
         if controls.pressure and not self.has_pressure:
             raise ValueError(f"intraoral pressure {controls.pressure:g} kPa on a problem without that control "
                              "(FaceProblem(intraoral_pressure=True))")
+        num_objects = len(self.contact.objects) if self.contact is not None else 0
+        if len(controls.objects) != num_objects:
+            raise ValueError(f"{len(controls.objects)} object poses for a problem with {num_objects} contact objects")
         if not controls.same_as(self.controls):
             self.solver.controls_changed()
         self._scatter(controls.activations, self.slots.activation)
         self.pressure.value = controls.pressure
+        if self.contact is not None:
+            self.contact.set_poses(controls.objects)
         values = self.bone_displacement.x.array.reshape(-1, 3)
         values[self.bone_blocks] = (self.bone_positions(controls.cranium, controls.jaw)
                                     - self.dof_coordinates[self.bone_blocks])
@@ -332,30 +370,33 @@ class FaceProblem:
     # -- solving -----------------------------------------------------------------------------
     def solve(self, activations=None, cranium: AffineMap | None = None,
               jaw: AffineMap | None = None, guess: np.ndarray | None = None,
-              max_halvings: int = 10, pressure: float | None = None) -> SolveReport:
+              max_halvings: int = 10, pressure: float | None = None, objects=None) -> SolveReport:
         """Equilibrium for the given controls (unspecified ones keep their values).
 
         Newton starts from ``guess`` (a dof array, e.g. the Gauss-Newton prediction X + dX/dc dc)
         if given, else from the current equilibrium carried along the change of the cranium
         frame. If that fails, continuation from the current equilibrium takes over, halving its
-        step at most ``max_halvings`` times before raising EquilibriumError.
+        step at most ``max_halvings`` times before raising EquilibriumError. ``objects``: the
+        poses of the contact objects (``AffineMap``s, world frame).
         """
         start = self.controls.copy()
         target = Controls(
             self.activation_vector(activations) if activations is not None else start.activations,
             cranium if cranium is not None else start.cranium,
             jaw if jaw is not None else start.jaw,
-            float(pressure) if pressure is not None else start.pressure)
+            float(pressure) if pressure is not None else start.pressure,
+            tuple(objects) if objects is not None else start.objects)
         if guess is not None:
             began = time.perf_counter()
             equilibrium = self.u.x.array.copy()
             # A long linear prediction can invert elements: pull it back towards the equilibrium.
             fraction = self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - guess)
             self.u.x.array[:] = equilibrium + fraction * (guess - equilibrium)
+            held = self._clear_objects(target.objects)
             self.set_controls(target)
             ok, iterations, why = self.solver.newton()
             if ok:
-                return SolveReport(True, iterations, 1, why, time.perf_counter() - began)
+                return SolveReport(True, held + iterations, 1, why, time.perf_counter() - began)
             log.info("Newton from the predicted shape failed (%s); continuing from the last "
                      "equilibrium", why)
             self.u.x.array[:] = equilibrium
@@ -364,16 +405,24 @@ class FaceProblem:
         def controls_at(t):
             self.set_controls(start.interpolate(target, t))
 
+        held = []  # Newton iterations of the objects' moves
+
         def predictor(t0, t1):
             old = start.cranium.interpolate(target.cranium, t0)
             new = start.cranium.interpolate(target.cranium, t1)
             if not old.same_as(new):
                 self._move_rigidly(old, new)
+            held.append(self._clear_objects(start.interpolate(target, t1).objects))
 
         report = self.solver.solve_continuation(controls_at, predictor=predictor,
                                                 max_halvings=max_halvings)
         self.set_controls(target)
-        return report
+        return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
+
+    def _clear_objects(self, poses) -> int:
+        """Move the objects to ``poses`` (``ContactPotential.move_to``): a start that Newton's
+        barrier accepts, near the equilibrium. Returns the Newton iterations it took."""
+        return self.contact.move_to(poses, self.solver) if self.contact is not None else 0
 
     def active_force(self, muscle: int, out: PETSc.Vec | None = None) -> PETSc.Vec:
         """f_i = df/da_i at the current shape (zero on Dirichlet dofs): the right-hand side of

@@ -1,0 +1,429 @@
+"""Frictionless contact of a surface of the flesh with rigid kinematic objects (IPC barrier).
+
+An object (``Sphere``, ``HalfSpace``) is rigid and moves as prescribed: its pose, an ``AffineMap``
+from its own frame to the world like the bone frames, is a control set before each solve (a
+trajectory is a sequence of poses), so moving it recompiles nothing. The contact surface is a
+tagged set of boundary facets (the skin of the face). Every node of it (vertices, and for P2 the
+edge midpoints: each P2 triangle is split into four flat ones) keeps a gap g > 0 to every object.
+
+The energy is the incremental potential contact barrier of Li et al. (2020), the IPC Toolkit's
+``ipctk.barrier`` b(g) = -(g - dhat)^2 ln(g / dhat) for g < dhat and 0 beyond, weighted by each
+node's share of the rest surface area so that it is a surface pressure that converges with the mesh:
+
+    E_c = stiffness / dhat * sum_i A_i b(g_i),   p(g) = -stiffness b'(g) / dhat  (kPa)
+
+``stiffness`` is thus about the contact pressure at g = dhat / 2 (p = 1.19 stiffness there); the
+pressure grows without bound as g -> 0. For a sphere and a half-space the gap of a node to an
+object is analytic, so the barrier couples each node only with itself: the Hessian is 3x3 blocks
+on the diagonal, inside the finite-element sparsity, and symmetric (Cholesky still works). The
+continuous collision detection is analytic too: ``step_fraction`` bounds a Newton step so that no
+node loses more than ``CCD_KEEP`` of its gap, anywhere along the line-search segment.
+
+Under MPI every rank gathers the positions of all contact nodes (a surface is small next to the
+volume), orders them by rest coordinates (so the sums are the same on any number of ranks), and
+adds the terms of the nodes it owns. ``ContactPotential`` is the solver's extra energy term
+(``QuasistaticSolver(energy_terms=...)``): energy, gradient into the residual, Hessian into the
+tangent, step bound next to the inversion guard's.
+"""
+from dataclasses import dataclass
+
+from mpi4py import MPI
+from petsc4py import PETSc
+import numpy as np
+from dolfinx import fem
+
+from face_dolfinx.model.bones import AffineMap
+
+# Along a Newton step or line-search segment no node may lose more than this fraction of its gap
+# (IPC's conservative rescaling of the time of impact, 0.8, is the same bound for a plane).
+CCD_KEEP = 0.8
+
+# Where the push-out predictor puts a node that an object's new pose would overlap: at this
+# fraction of dhat from the object, where the barrier pressure is about the stiffness.
+PUSH_GAP = 0.5
+
+# Reference tetrahedron (basix): facet i is opposite vertex i; edge e joins these vertices.
+_TET_EDGES = ((2, 3), (1, 3), (1, 2), (0, 3), (0, 2), (0, 1))
+
+
+def barrier(g: np.ndarray, dhat: float) -> np.ndarray:
+    """b(g) of ``ipctk.barrier``, vectorised; 0 for g >= dhat, inf for g <= 0."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        value = -(g - dhat) ** 2 * np.log(g / dhat)
+    return np.where(g >= dhat, 0.0, np.where(g > 0.0, value, np.inf))
+
+
+def barrier_derivatives(g: np.ndarray, dhat: float) -> tuple[np.ndarray, np.ndarray]:
+    """b'(g) and b''(g) (``ipctk.barrier_first_derivative``, ``..._second_derivative``); NaN for
+    g <= 0, where the barrier is undefined."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = dhat / g
+        first = (dhat - g) * (2.0 * np.log(g / dhat) - ratio + 1.0)
+        second = (ratio + 2.0) * ratio - 2.0 * np.log(g / dhat) - 3.0
+    inactive = g >= dhat
+    return (np.where(inactive, 0.0, np.where(g > 0.0, first, np.nan)),
+            np.where(inactive, 0.0, np.where(g > 0.0, second, np.nan)))
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """A rigid ball of ``radius`` (mm), centred at the origin of its frame."""
+
+    radius: float
+
+    def __post_init__(self):
+        if not self.radius > 0.0:
+            raise ValueError(f"sphere radius {self.radius:g} mm: give a positive radius")
+
+    def gaps(self, points: np.ndarray, pose: AffineMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Signed gap of each point to the surface, the outward unit normal there, and 1 / the
+        distance to the centre (the gap's Hessian is (I - n n^T) times that)."""
+        offset = points - pose.translation
+        distance = np.linalg.norm(offset, axis=1)
+        inverse = 1.0 / np.maximum(distance, 1e-300)
+        return distance - self.radius, offset * inverse[:, None], inverse
+
+    def first_contact(self, points: np.ndarray, steps: np.ndarray, pose: AffineMap,
+                      clearance: np.ndarray) -> np.ndarray:
+        """For each point, the smallest t > 0 at which points + t steps comes within ``clearance``
+        of the sphere (inf if never)."""
+        q = points - pose.translation
+        r = self.radius + clearance
+        a = np.einsum("ij,ij->i", steps, steps)
+        b = np.einsum("ij,ij->i", q, steps)
+        c = np.einsum("ij,ij->i", q, q) - r * r
+        discriminant = b * b - a * c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # The smaller root of a t^2 + 2 b t + c = 0, written to avoid cancellation.
+            t = c / (-b + np.sqrt(np.maximum(discriminant, 0.0)))
+        hits = (discriminant >= 0.0) & (b < 0.0) & (a > 0.0)
+        return np.where(hits & (t > 0.0), t, np.inf)
+
+    def describe(self) -> str:
+        return f"sphere of radius {self.radius:g} mm"
+
+    def surface(self, refinements: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """Points and triangles of an icosphere on the sphere (in its frame), for output."""
+        t = (1.0 + 5.0 ** 0.5) / 2.0
+        points = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+                           [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], dtype=float)
+        triangles = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+                              [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+                              [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+        for _ in range(refinements):
+            edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+            unique, index = np.unique(edges, axis=0, return_inverse=True)
+            mid = len(points) + index.reshape(3, -1)
+            points = np.vstack([points, 0.5 * (points[unique[:, 0]] + points[unique[:, 1]])])
+            a, b, c = triangles.T
+            triangles = np.vstack([np.c_[a, mid[0], mid[2]], np.c_[b, mid[1], mid[0]],
+                                   np.c_[c, mid[2], mid[1]], np.c_[mid[0], mid[1], mid[2]]])
+        points *= self.radius / np.linalg.norm(points, axis=1)[:, None]
+        return points, triangles
+
+
+@dataclass(frozen=True)
+class HalfSpace:
+    """The rigid half-space below the plane through the origin of its frame with outward unit
+    ``normal`` (in its frame): n . x <= 0 is solid."""
+
+    normal: tuple = (0.0, 0.0, 1.0)
+
+    def world_normal(self, pose: AffineMap) -> np.ndarray:
+        n = pose.matrix @ np.asarray(self.normal, dtype=float)
+        return n / np.linalg.norm(n)
+
+    def gaps(self, points: np.ndarray, pose: AffineMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = self.world_normal(pose)
+        gap = (points - pose.translation) @ n
+        return gap, np.broadcast_to(n, points.shape), np.zeros(len(points))
+
+    def first_contact(self, points, steps, pose, clearance) -> np.ndarray:
+        n = self.world_normal(pose)
+        approach = -(steps @ n)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((points - pose.translation) @ n - clearance) / approach
+        return np.where(approach > 0.0, np.maximum(t, 0.0), np.inf)
+
+    def describe(self) -> str:
+        return f"half-space with normal {tuple(float(v) for v in self.normal)}"
+
+
+def read_path(path) -> list[AffineMap]:
+    """Poses of an object over time from a text file: one line per pose with the x y z (mm, model
+    frame) of the object's origin, separated by spaces or commas; ``#`` starts a comment. One clear
+    error naming the file and line for anything else."""
+    poses = []
+    try:
+        lines = open(path).read().splitlines()
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read the object's path ({error.strerror})") from None
+    for number, line in enumerate(lines, start=1):
+        text = line.split("#", 1)[0].replace(",", " ").split()
+        if not text:
+            continue
+        try:
+            values = np.array([float(v) for v in text])
+        except ValueError:
+            values = np.array([np.nan])
+        if values.shape != (3,) or not np.isfinite(values).all():
+            raise ValueError(f"{path}, line {number}: expected the three coordinates x y z (mm) of a pose, "
+                             f"got {line.strip()!r}")
+        poses.append(AffineMap(np.eye(3), values))
+    if not poses:
+        raise ValueError(f"{path}: no poses (one line of x y z per pose)")
+    return poses
+
+
+@dataclass
+class ContactSettings:
+    """What the flesh may touch: rigid ``objects`` at their rest ``poses`` (identity if not given),
+    the barrier's activation distance ``dhat`` (mm) and ``stiffness`` (kPa, about the contact
+    pressure at g = dhat / 2), and the tagged boundary ``surface`` that touches them."""
+
+    objects: tuple
+    poses: tuple = ()
+    dhat: float = 0.05
+    stiffness: float = 10.0
+    surface: str = "skin"
+    where: str = "the contact settings"  # named in error messages (a file, an option)
+
+    def rest_poses(self) -> tuple:
+        return tuple(self.poses) if self.poses else tuple(AffineMap() for _ in self.objects)
+
+
+class ContactSurface:
+    """The nodes of a set of boundary facets, gathered on every rank in rest-coordinate order,
+    with their flat triangles and lumped rest areas, and the nodes each rank owns."""
+
+    def __init__(self, space: fem.FunctionSpace, facets: np.ndarray):
+        mesh = space.mesh
+        self.comm = mesh.comm
+        tdim = mesh.topology.dim
+        mesh.topology.create_connectivity(tdim - 1, tdim)
+        mesh.topology.create_connectivity(tdim, tdim - 1)
+        facet_cells, cell_facets = mesh.topology.connectivity(tdim - 1, tdim), mesh.topology.connectivity(tdim, tdim - 1)
+        layout = space.dofmap.dof_layout
+        vertex_dof = [layout.entity_dofs(0, v)[0] for v in range(4)]
+        edge_dof = {frozenset(e): layout.entity_dofs(1, i)[0] for i, e in enumerate(_TET_EDGES)
+                    if len(layout.entity_dofs(1, i))}
+        index_map = space.dofmap.index_map
+        local_triangles = []
+        for facet in np.asarray(facets, dtype=np.int32):
+            cell = facet_cells.links(facet)[0]
+            opposite = int(np.flatnonzero(cell_facets.links(cell) == facet)[0])
+            blocks = space.dofmap.cell_dofs(cell)
+            a, b, c = (v for v in range(4) if v != opposite)
+            if edge_dof:  # P2: four flat triangles through the edge midpoints
+                ab, bc, ca = (edge_dof[frozenset(e)] for e in ((a, b), (b, c), (c, a)))
+                A, B, C = vertex_dof[a], vertex_dof[b], vertex_dof[c]
+                for tri in ((A, ab, ca), (B, bc, ab), (C, ca, bc), (ab, bc, ca)):
+                    local_triangles.append(blocks[list(tri)])
+            else:
+                local_triangles.append(blocks[[vertex_dof[a], vertex_dof[b], vertex_dof[c]]])
+        local_triangles = np.array(local_triangles, dtype=np.int32).reshape(-1, 3)
+        global_triangles = index_map.local_to_global(local_triangles.reshape(-1)).reshape(-1, 3)
+        coordinates = space.tabulate_dof_coordinates()[:, :3]
+        owned = np.unique(local_triangles[local_triangles < index_map.size_local])
+        owned_global = index_map.local_to_global(owned)
+
+        # Every rank: all triangles and all owned nodes with their rest coordinates.
+        all_triangles = np.concatenate(self.comm.allgather(global_triangles))
+        node_global = np.concatenate(self.comm.allgather(owned_global))
+        node_rest = np.concatenate(self.comm.allgather(coordinates[owned]))
+        order = np.lexsort(node_rest.T[::-1])
+        node_global, self.rest = node_global[order], node_rest[order]
+        lookup = np.argsort(node_global)
+        def surface_index(g):
+            return lookup[np.searchsorted(node_global[lookup], g)]
+        triangles = surface_index(all_triangles)
+        # A facet seen by two ranks (a ghost) is counted once.
+        self.triangles = np.unique(np.sort(triangles, axis=1), axis=0)
+        edges1 = self.rest[self.triangles[:, 1]] - self.rest[self.triangles[:, 0]]
+        edges2 = self.rest[self.triangles[:, 2]] - self.rest[self.triangles[:, 0]]
+        area = 0.5 * np.linalg.norm(np.cross(edges1, edges2), axis=1)
+        self.areas = np.bincount(self.triangles.reshape(-1), np.repeat(area / 3.0, 3), minlength=len(self.rest))
+        self.num_nodes = len(self.rest)
+        self.owned_blocks = owned  # local block indices of this rank's nodes ...
+        self.owned_nodes = surface_index(owned_global)  # ... and their surface indices
+        self._counts = np.array(self.comm.allgather(3 * len(owned)))
+        self._gathered_nodes = np.concatenate(self.comm.allgather(self.owned_nodes))
+        # Owned and ghost nodes (a Dirichlet condition on nodes must hold on every rank that sees them).
+        self.local_blocks = np.unique(local_triangles)
+        self.local_nodes = surface_index(index_map.local_to_global(self.local_blocks))
+
+    def gather(self, values: np.ndarray) -> np.ndarray:
+        """(num_nodes, 3) of a blocked dof array (owned part at least), from every rank."""
+        mine = np.ascontiguousarray(values.reshape(-1, 3)[self.owned_blocks]).reshape(-1)
+        received = np.empty(int(self._counts.sum()))
+        self.comm.Allgatherv(mine, [received, self._counts])
+        out = np.empty((self.num_nodes, 3))
+        out[self._gathered_nodes] = received.reshape(-1, 3)
+        return out
+
+
+class ContactPotential:
+    """The barrier energy of a contact surface against rigid objects at given poses, as an extra
+    energy term of the equilibrium solver (see the module docstring). Poses: ``set_poses``."""
+
+    def __init__(self, space: fem.FunctionSpace, facets: np.ndarray, settings: ContactSettings):
+        if not settings.dhat > 0.0 or not settings.stiffness > 0.0:
+            raise ValueError(f"{settings.where}: dhat and the stiffness must be positive "
+                             f"(got {settings.dhat:g} mm, {settings.stiffness:g} kPa)")
+        self.settings = settings
+        self.objects = tuple(settings.objects)
+        self.dhat, self.stiffness = settings.dhat, settings.stiffness
+        self.surface = ContactSurface(space, facets)
+        if self.surface.comm.allreduce(len(facets), op=MPI.SUM) == 0:
+            raise ValueError(f"{settings.where}: the contact surface {settings.surface!r} has no facets")
+        self.poses = settings.rest_poses()
+        if len(self.poses) != len(self.objects):
+            raise ValueError(f"{settings.where}: {len(self.objects)} objects but {len(self.poses)} poses")
+
+    def set_poses(self, poses) -> None:
+        poses = tuple(poses)
+        if len(poses) != len(self.objects):
+            raise ValueError(f"{len(poses)} object poses for {len(self.objects)} objects")
+        self.poses = poses
+
+    # -- geometry ----------------------------------------------------------------------------
+    def positions(self, displacement: np.ndarray) -> np.ndarray:
+        """Current positions of all contact nodes (every rank)."""
+        return self.surface.rest + self.surface.gather(displacement)
+
+    def gaps(self, displacement: np.ndarray, poses=None) -> np.ndarray:
+        """(objects, nodes) signed gaps; negative inside an object."""
+        x = self.positions(displacement)
+        poses = self.poses if poses is None else poses
+        return np.array([obj.gaps(x, pose)[0] for obj, pose in zip(self.objects, poses)]).reshape(-1, len(x))
+
+    def min_gap(self, displacement: np.ndarray) -> float:
+        """Smallest gap of any node to any object (mm; negative: penetration)."""
+        gaps = self.gaps(displacement)
+        return float(gaps.min()) if gaps.size else np.inf
+
+    def check_clear(self, displacement: np.ndarray) -> None:
+        """A clear error if an object at its pose overlaps the surface or touches it (gap <= 0)."""
+        for obj, pose, gap in zip(self.objects, self.poses, self.gaps(displacement)):
+            if gap.min() <= 0.0:
+                raise ValueError(f"{self.settings.where}: the {obj.describe()} at {pose.translation.round(3).tolist()} "
+                                 f"starts inside the {self.settings.surface} ({int((gap <= 0).sum())} "
+                                 f"nodes, deepest {-gap.min():.3g} mm): place it outside")
+
+    def contact_nodes(self, displacement: np.ndarray) -> int:
+        """Number of (object, node) pairs within dhat."""
+        return int((self.gaps(displacement) < self.dhat).sum())
+
+    # -- the solver's energy-term interface ---------------------------------------------------
+    def _terms(self, displacement: np.ndarray):
+        """Per object: active nodes, gaps, normals, inverse curvature radii."""
+        x = self.positions(displacement)
+        for obj, pose in zip(self.objects, self.poses):
+            gap, normal, curvature = obj.gaps(x, pose)
+            active = np.flatnonzero(gap < self.dhat)
+            yield active, gap[active], normal[active], curvature[active]
+
+    def energy(self, x: PETSc.Vec) -> float:
+        """E_c at the displacement ``x`` (the same on every rank; inf if a node is inside)."""
+        scale = self.stiffness / self.dhat
+        return float(sum(scale * (self.surface.areas[active] * barrier(gap, self.dhat)).sum()
+                         for active, gap, _, _ in self._terms(x.array_r)))
+
+    def nodal_forces(self, displacement: np.ndarray) -> np.ndarray:
+        """(nodes, 3) dE_c/dx at every contact node (the force on the objects; NaN if inside)."""
+        gradient = np.zeros((self.surface.num_nodes, 3))
+        scale = self.stiffness / self.dhat
+        for active, gap, normal, _ in self._terms(displacement):
+            first, _ = barrier_derivatives(gap, self.dhat)
+            np.add.at(gradient, active, (scale * self.surface.areas[active] * first)[:, None] * normal)
+        return gradient
+
+    def add_gradient(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        """b += dE_c/du on this rank's dofs."""
+        gradient = self.nodal_forces(x.array_r)[self.surface.owned_nodes]
+        values = b.array.reshape(-1, 3)
+        values[self.surface.owned_blocks] += gradient
+
+    def add_hessian(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> None:
+        """A += d2E_c/du2 on this rank's rows (assembled); the rows and columns of ``constrained``
+        (owned local dofs, a Dirichlet condition's) are left alone."""
+        blocks = np.zeros((self.surface.num_nodes, 3, 3))
+        scale = self.stiffness / self.dhat
+        identity = np.eye(3)
+        for active, gap, normal, curvature in self._terms(x.array_r):
+            first, second = barrier_derivatives(gap, self.dhat)
+            nn = normal[:, :, None] * normal[:, None, :]
+            # d2b/dx2 = b'' n n^T + b' d2g/dx2, with d2g/dx2 = (I - n n^T) / |x - c| for a sphere.
+            local = second[:, None, None] * nn + (first * curvature)[:, None, None] * (identity - nn)
+            np.add.at(blocks, active, scale * self.surface.areas[active][:, None, None] * local)
+        owned = self.surface.owned_nodes
+        touched = np.flatnonzero(np.abs(blocks[owned]).sum(axis=(1, 2)) > 0.0)
+        free = np.ones(x.getLocalSize(), dtype=bool)
+        free[constrained] = False
+        first_row = x.getOwnershipRange()[0]
+        for k in touched:
+            local_dofs = 3 * self.surface.owned_blocks[k] + np.arange(3)
+            keep = free[local_dofs]
+            if keep.any():
+                rows = (first_row + local_dofs[keep]).astype(PETSc.IntType)
+                A.setValues(rows, rows, blocks[owned[k]][np.ix_(keep, keep)], addv=PETSc.InsertMode.ADD_VALUES)
+        A.assemble()
+
+    def step_fraction(self, x: PETSc.Vec, step: PETSc.Vec, largest: float) -> float:
+        """Largest t in (0, 1] such that no point of x - s t largest step, s in [0, 1], brings a
+        node closer to an object than (1 - CCD_KEEP) of its gap now."""
+        points = self.positions(x.array_r)
+        moves = -largest * self.surface.gather(step.array_r)
+        fraction = 1.0
+        for obj, pose in zip(self.objects, self.poses):
+            gap = obj.gaps(points, pose)[0]
+            t = obj.first_contact(points, moves, pose, (1.0 - CCD_KEEP) * gap)
+            fraction = min(fraction, float(t.min(initial=np.inf)))
+        return fraction
+
+    # -- moving the objects ------------------------------------------------------------------
+    def push_out(self, displacement: np.ndarray, poses) -> tuple[np.ndarray, np.ndarray]:
+        """The displacement with every node that the objects at ``poses`` would leave closer than
+        PUSH_GAP * dhat moved out along the object's normal to that gap (a start that overlaps no
+        object; local dof array, owned part changed, ghosts need an update), and the nodes to hold
+        while the flesh follows: those and every node within the objects' move of them (the flesh
+        a dent displaces bulges up around it, into the object's way)."""
+        out = displacement.copy()
+        x = self.positions(displacement)
+        held = np.zeros(len(x), dtype=bool)
+        target = PUSH_GAP * self.dhat
+        for obj, old, new in zip(self.objects, self.poses, poses):
+            reach = target + np.linalg.norm(new.compose(old.inverse()).apply(x) - x, axis=1).max(initial=0.0)
+            gap, normal, _ = obj.gaps(x, new)
+            close = gap < target
+            x[close] += (target - gap[close])[:, None] * normal[close]
+            held |= gap < reach
+        moved = x - self.surface.rest
+        values = out.reshape(-1, 3)
+        values[self.surface.owned_blocks] = moved[self.surface.owned_nodes]
+        return out, np.flatnonzero(held)
+
+    def move_to(self, poses, solver) -> int:
+        """Put the objects at ``poses``, first pushing the surface out of them (``push_out``) and
+        carrying the flesh along by a Newton solve of ``solver`` (whose unknown is the displacement)
+        with the pushed nodes and their neighbourhood held where they are put: that spreads the dent smoothly into the
+        flesh, as the lifting of a bone motion does, where Newton from the bare push-out crawls in
+        collision-limited steps while the flesh pulls the dent back node by node. The state it
+        leaves overlaps no object; the solve that follows releases the nodes. Returns the Newton
+        iterations it took."""
+        u = solver.unknown
+        u.x.array[:], nodes = self.push_out(u.x.array, poses)
+        u.x.scatter_forward()
+        self.set_poses(poses)
+        solver.controls_changed()
+        if not nodes.size:
+            return 0
+        values = fem.Function(u.function_space)
+        values.x.array[:] = u.x.array
+        held = fem.dirichletbc(values, self.surface.local_blocks[np.isin(self.surface.local_nodes, nodes)])
+        solver.bcs.append(held)
+        try:
+            return solver.newton()[1]
+        finally:
+            solver.bcs.remove(held)
+            solver.controls_changed()
