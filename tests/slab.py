@@ -55,8 +55,13 @@ def slab_model(cells=(8, 4, 2), comm=MPI.COMM_WORLD):
     jaw = SimpleNamespace(u=np.array([0.0, 1.0, 0.0]), v=np.array([1.0, 0.0, 0.0]),
                           w=np.array([0.0, 0.0, 1.0]), midpoint=np.array([40.0, 10.0, 5.0]),
                           condyle_distance=20.0, track_length=5.0, max_opening_sine=0.5)
+    material = {"mu10": 6.0, "mu01": 2.0, "kappa": 60.0, "fiber_stress": 30.0}
+
+    def peak_stress(index):  # as FaceModel.peak_stress
+        own = muscles[index].peak_stress
+        return own if own is not None else material["fiber_stress"]
+
     return SimpleNamespace(
         path="<slab>", jaw=jaw, name="slab", mesh=domain, facet_tags=tags,
-        boundary_ids={"cranium": CRANIUM, "mandible": MANDIBLE}, muscles=muscles,
-        material={"mu10": 6.0, "mu01": 2.0, "kappa": 60.0, "fiber_stress": 30.0},
-        muscle_names=names, muscle_index=muscle_index)
+        boundary_ids={"cranium": CRANIUM, "mandible": MANDIBLE}, muscles=muscles, material=material,
+        muscle_names=names, muscle_index=muscle_index, peak_stress=peak_stress)
