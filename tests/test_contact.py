@@ -267,9 +267,9 @@ def test_simulate_moves_a_sphere_along_a_path(model, builtin_model_path, shared_
     assert rows[2]["contact_nodes"] >= 3 and rows[2]["min_gap_mm"] > 0.0
     assert rows[3]["contact_nodes"] == 0  # the sphere has left again
     assert (out / "object.xdmf").exists() and (out / "object.h5").exists()
-    inside = shared_dir / "inside.txt"
+    inside, pressed_in = shared_dir / "inside.txt", _cheek_path(model, [3.0])[0]
     if MPI.COMM_WORLD.rank == 0:
-        inside.write_text(" ".join(f"{v:.6f}" for v in _cheek_path(model, [3.0])[0]) + "\n")
+        inside.write_text(" ".join(f"{v:.6f}" for v in pressed_in) + "\n")
         (shared_dir / "bad.txt").write_text("1 2 3\n4 five 6\n")
     MPI.COMM_WORLD.barrier()
     with pytest.raises(SystemExit, match="inside.txt .its first pose.: the sphere of radius 15 mm .* starts inside the skin"):

@@ -33,8 +33,8 @@ Energy terms evaluated outside UFL (``energy_terms``, e.g. the contact barrier o
 ``face_dolfinx.physics.contact``) add to the total energy: each gives its energy, adds its gradient to
 the residual and its Hessian to the assembled tangent (so the tangent stays that of one energy), and
 bounds each Newton step next to the inversion guard (``step_fraction``: no line-search point may
-leave the term's domain, e.g. penetrate an object). Without them the solver does exactly what it
-does with none.
+leave the term's domain, e.g. penetrate an object). With no terms none of this runs: the Newton
+iterates are those of the UFL energy alone, to the bit.
 
 The tangent's structure is a setting (``tangent``): "spd" for the face, whose symmetric tangent
 MUMPS factorises without pivoting (with a pivoting retry after a zero pivot), "symmetric" for a
