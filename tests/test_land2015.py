@@ -273,3 +273,25 @@ def test_ellipsoid_linear_tetrahedra_lock(ellipsoid_taylor_hood):
     free = ellipsoid_taylor_hood[3].quantities
     ejected = lambda q: q["undeformed_cavity_volume_mm3"] - q["cavity_volume_mm3"]  # noqa: E731
     assert 0.0 < ejected(locked) < 0.25 * ejected(free)
+
+
+def test_ventricle_mesh_graded_towards_the_apex():
+    """--apex-size: small tetrahedra within a millimetre of the axis at the apex, the level's size
+    elsewhere (the endocardial apex converges with the size there, docs/verification.md)."""
+    def cells_near(domain, centre, radius):
+        nodes = domain.geometry.dofmap.array.reshape(-1, 10)[:, :4]  # P2 tetrahedra: vertices first
+        midpoints = domain.geometry.x[nodes].mean(axis=1)
+        owned = domain.topology.index_map(3).size_local
+        near = np.linalg.norm(midpoints[:owned] - centre, axis=1) < radius
+        return MPI.COMM_WORLD.allreduce(int(near.sum()), op=MPI.SUM), domain.topology.index_map(3).size_global
+
+    apex, base = np.array(land2015.ENDO_APEX), np.array([8.5, 0.0, 0.0])
+    uniform, _ = land2015.ventricle_mesh(MPI.COMM_WORLD, 0)
+    graded, _ = land2015.ventricle_mesh(MPI.COMM_WORLD, 0, apex_size=0.75)
+    near_uniform, total_uniform = cells_near(uniform, apex, 2.0)
+    near_graded, total_graded = cells_near(graded, apex, 2.0)
+    assert near_graded > 8 * max(near_uniform, 1)           # (3 / 0.75)^3 = 64 times as fine there
+    assert cells_near(graded, base, 2.0)[0] <= 2 * max(cells_near(uniform, base, 2.0)[0], 1)  # not here
+    assert total_graded < 3 * total_uniform
+    with pytest.raises(ValueError, match="beam"):
+        land2015.run(1, 0, apex_size=0.5)
