@@ -440,7 +440,7 @@ def _marker_setup(args):
 def demo(args) -> int:
     """The README's main job: build the built-in face, synthesise a speech-like take with head
     motion and 0.5 mm marker noise (its truth kept beside it), fit it, and write the results
-    folder with its tables, plots, rendered frames and ParaView series. Rerun after an
+    folder with its tables, plots, rendered frames, video and ParaView series. Rerun after an
     interruption, it continues where it stopped; once finished, it says so."""
     from face_dolfinx.model.anatomy import build_builtin_face
     out = pathlib.Path(args.out)
@@ -451,11 +451,12 @@ def demo(args) -> int:
         main([*verbose, "synth", *model, "--frames", str(args.frames), "--out", str(take), "--overwrite"])
     fit_folder = out / "fit"
     main([*verbose, "fit", str(take), *model, "--out", str(fit_folder), *(["--overwrite"] if args.overwrite else [])])
+    main([*verbose, "video", str(fit_folder)])
     if MPI.COMM_WORLD.rank == 0:
         print(f"take: {take.resolve()} (truth: {take.with_name('take.truth.npz').name})\n"
               f"results: {fit_folder.resolve()}\n"
               f"  plots: activations.png, kinematics.png, marker_error.png; renders/ (captured markers "
-              f"red, simulated green)\n"
+              f"red, simulated green); the take as a video: face.mp4 (or face.gif)\n"
               f"  tables: activations.csv, kinematics.csv, marker_errors.csv, frames.csv; "
               f"ParaView: face.xdmf")
     return 0
