@@ -36,11 +36,11 @@ from scipy.optimize import lsq_linear
 from face_dolfinx.alignment.placement import place_on_model
 from face_dolfinx.alignment.similarity import similarity_transform
 from face_dolfinx.capture import read_capture
-from face_dolfinx.fitting import MarkerSet
-from face_dolfinx.model.bones import AffineMap, jaw_pose
+from face_dolfinx.fitting import FitSettings, MarkerSet
+from face_dolfinx.model.bones import AffineMap, jaw_pose, tmj_upper_limits
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.problem import FaceProblem
-from face_dolfinx.results.accuracy import MotionMeasures, rigid_prediction
+from face_dolfinx.results.accuracy import MotionMeasures, rigid_motions
 from face_dolfinx.results.folder import FitFolder
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity, bone_position_derivatives
 
@@ -60,12 +60,12 @@ def marker_columns(model, placement, pressure: bool):
     columns = [sensitivity.activation_columns(),
                sensitivity.boundary_columns(bone_position_derivatives(problem, pose, np.zeros(3), TMJ_STEP))]
     n = problem.num_muscles
-    opening, track = float(np.arcsin(model.jaw.max_opening_sine)), model.jaw.track_length
-    lower, upper = [0.0] * n + [0.0, 0.0, 0.0], [1.0] * n + [opening, track, track]
+    lower, upper = [0.0] * n + [0.0, 0.0, 0.0], [1.0] * n + list(tmj_upper_limits(model.jaw))
     if pressure:
         columns.append(sensitivity.pressure_columns())
-        lower.append(-100.0)
-        upper.append(100.0)
+        limit = FitSettings().pressure_limit
+        lower.append(-limit)
+        upper.append(limit)
     jacobian = markers.evaluator.values_many(np.concatenate(columns))
     rest = markers.positions(problem.u.x.array, AffineMap())
     return rest, jacobian, np.array(lower), np.array(upper)
@@ -94,12 +94,10 @@ def span_prediction(rest, jacobian, captured, fitted, bounds=None) -> np.ndarray
 def neighbour_prediction(neutral, captured, fitted, kernel: str) -> np.ndarray:
     """Every marker predicted from the fitted markers' non-rigid displacement, interpolated over
     the neutral positions by an RBF, carried by the frame's rigid head motion."""
-    rigid = rigid_prediction(neutral, captured)
     predicted = np.full(captured.shape, np.nan)
-    for frame, markers in enumerate(captured):
-        if not np.all(np.isfinite(rigid[frame])):
+    for frame, (markers, head) in enumerate(zip(captured, rigid_motions(neutral, captured))):
+        if head is None:
             continue
-        head = similarity_transform(neutral, rigid[frame], allow_scale=False)
         displacement = (markers - head.translation) @ head.rotation - neutral
         use = fitted & np.all(np.isfinite(displacement), axis=1)
         interpolant = RBFInterpolator(neutral[use], displacement[use], kernel=kernel, smoothing=1.0)

@@ -18,9 +18,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from face_dolfinx.fitting.baselines import (ActuationBasis, LinearFitter, LinearizedModel, tmj_limits,
+from face_dolfinx.fitting.baselines import (ActuationBasis, LinearFitter, LinearizedModel,
                                     upper_face_regions)
-from face_dolfinx.model.bones import jaw_pose, rigid_map, rotation
+from face_dolfinx.model.bones import jaw_pose, rigid_map, rotation, tmj_upper_limits
 from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
 from face_dolfinx.tracking import track
 from face_dolfinx.physics.problem import FaceProblem
@@ -52,7 +52,7 @@ def test_basis_reproduces_single_element_shapes(model, face, basis):
     zygomaticus = model.muscle_index("zygomaticus_major_left")
     for element, activations, tmj in (
             (zygomaticus, np.eye(n)[zygomaticus], np.zeros(3)),
-            (n, np.zeros(n), tmj_limits(model.jaw) * [1, 0, 0])):
+            (n, np.zeros(n), tmj_upper_limits(model.jaw) * [1, 0, 0])):
         # An independent solve: continuation from wherever the problem is, not Newton from rest.
         problem.solve(activations=activations, cranium=HEAD, jaw=jaw_pose(model.jaw, *tmj))
         captured = markers.positions(problem.u.x.array, HEAD)
@@ -148,5 +148,5 @@ def test_training_take_isolates_every_muscle_and_jaw_limit(model):
                                & (np.abs(tmj).sum(axis=1) == 0.0))
         assert alone.size == 1, model.muscle_names[muscle]
         assert activations[alone[0] - 1, muscle] == 0.5  # the level ramps up over the segment
-    for k, limit in enumerate(tmj_limits(model.jaw)):
+    for k, limit in enumerate(tmj_upper_limits(model.jaw)):
         assert np.any((tmj[:, k] == limit) & (activations.sum(axis=1) == 0.0))

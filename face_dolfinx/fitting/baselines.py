@@ -57,17 +57,12 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from face_dolfinx.alignment.similarity import similarity_transform
-from face_dolfinx.model.bones import AffineMap, jaw_pose, rotation
+from face_dolfinx.model.bones import AffineMap, jaw_pose, rotation, tmj_upper_limits
 from .formulations import TMJ_STEP
 from .records import FrameResult
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity, bone_position_derivatives
 
 UPPER_FACE_MUSCLES = ("frontalis", "corrugator", "orbicularis_oculi")  # choe_ko2001 section 4.1.2
-
-
-def tmj_limits(jaw) -> np.ndarray:
-    """Opening (rad), right and left condyle slide (mm) at their upper bounds."""
-    return np.array([math.asin(jaw.max_opening_sine), jaw.track_length, jaw.track_length])
 
 
 @dataclass
@@ -119,7 +114,7 @@ class ActuationBasis(LinearMarkerModel):
         problem.solve(**rest_controls)
         rest_u = problem.u.x.array.copy()
         rest = markers.positions(rest_u, AffineMap())
-        limits = tmj_limits(model.jaw)
+        limits = tmj_upper_limits(model.jaw)
         columns = []
         for element in range(n + 3):
             activations, tmj = np.zeros(n), np.zeros(3)
@@ -201,7 +196,7 @@ class LinearizedModel(LinearMarkerModel):
         muscle_columns = markers.evaluator.values_many(sensitivity.activation_columns())
         pose = lambda tmj: (AffineMap(), jaw_pose(model.jaw, *tmj))  # noqa: E731
         jaw_dofs = sensitivity.boundary_columns(bone_position_derivatives(problem, pose, np.zeros(3), TMJ_STEP))
-        limits = tmj_limits(model.jaw)
+        limits = tmj_upper_limits(model.jaw)
         jaw_columns = markers.evaluator.values_many(jaw_dofs) * limits[:, None, None]
         columns = np.concatenate([muscle_columns, jaw_columns])
         return cls(rest, columns, np.concatenate([np.ones(n), limits]), n,

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from . import penalties
-from face_dolfinx.model.bones import AffineMap, jaw_pose, rotation
+from face_dolfinx.model.bones import AffineMap, jaw_pose, rotation, tmj_upper_limits
 from face_dolfinx.sensitivities.columns import bone_position_derivatives
 
 MIN_TRUST_RADIUS = 0.01
@@ -170,9 +170,7 @@ class ExactFormulation(Formulation):
 
     def tmj_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds of the TMJ values: opening (rad), right and left slides (mm)."""
-        geometry = self.jaw_geometry
-        return (np.array([0.0, 0.0, 0.0]),
-                np.array([math.asin(geometry.max_opening_sine), geometry.track_length, geometry.track_length]))
+        return np.zeros(3), tmj_upper_limits(self.jaw_geometry)
 
     def start_frame(self, targets, present, warm):
         # From rest (the first frame) the activations have far to go.

@@ -5,6 +5,7 @@ through a penalty; the jaw frame is relative to the cranium. The exact-mode para
 the jaw is its three TMJ degrees of freedom: the two condyle slides along tracks parallel to v and
 the opening rotation about the condyle axis.
 """
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -76,6 +77,12 @@ def rigid_map(rotation_matrix: np.ndarray, center: np.ndarray, displacement: np.
     """Rotation about ``center`` followed by a translation ``displacement``."""
     c = np.asarray(center, dtype=float)
     return AffineMap(rotation_matrix, c - rotation_matrix @ c + np.asarray(displacement, dtype=float))
+
+
+def tmj_upper_limits(jaw) -> np.ndarray:
+    """The TMJ values at their upper bounds: opening (rad), right and left condyle slides (mm); the
+    lower bounds are 0."""
+    return np.array([math.asin(jaw.max_opening_sine), jaw.track_length, jaw.track_length])
 
 
 def jaw_pose(jaw, opening_angle: float = 0.0, slide_right: float = 0.0,

@@ -29,12 +29,12 @@ RIGID_SHARE = 0.5
 RIGID_ROUNDS = 3
 
 
-def rigid_prediction(neutral: np.ndarray, captured: np.ndarray) -> np.ndarray:
-    """(frames, markers, 3): the neutral markers (markers, 3) moved by each frame's rigid head
-    motion, the best rigid motion onto the captured markers (frames, markers, 3) of the markers
-    seen in both that move most rigidly; NaN in a frame with fewer than 3 of them (or collinear)."""
-    predicted = np.full(captured.shape, np.nan)
-    for frame, markers in enumerate(captured):
+def rigid_motions(neutral: np.ndarray, captured: np.ndarray) -> list:
+    """Each frame's rigid head motion (``Similarity``, scale 1): the best rigid motion of the
+    neutral markers (markers, 3) onto the captured ones (frames, markers, 3), over the markers seen
+    in both that move most rigidly; None in a frame with fewer than 3 of them (or collinear)."""
+    motions = []
+    for markers in captured:
         weights = np.ones(len(neutral))
         try:
             for _ in range(RIGID_ROUNDS + 1):
@@ -45,8 +45,18 @@ def rigid_prediction(neutral: np.ndarray, captured: np.ndarray) -> np.ndarray:
                 weights = np.zeros(len(neutral))
                 weights[np.argsort(np.where(seen, distance, np.inf))[:kept]] = 1.0
         except AlignmentError:
-            continue
-        predicted[frame] = motion.apply(neutral)
+            motion = None
+        motions.append(motion)
+    return motions
+
+
+def rigid_prediction(neutral: np.ndarray, captured: np.ndarray) -> np.ndarray:
+    """(frames, markers, 3): the neutral markers moved by each frame's rigid head motion
+    (``rigid_motions``); NaN where a frame has none."""
+    predicted = np.full(captured.shape, np.nan)
+    for frame, motion in enumerate(rigid_motions(neutral, captured)):
+        if motion is not None:
+            predicted[frame] = motion.apply(neutral)
     return predicted
 
 
