@@ -211,7 +211,10 @@ class FaceProblem:
         self.pressure = fem.Constant(mesh, PETSc.ScalarType(0.0))
         if intraoral_pressure:
             # The cofactor J F^-T has degree 2(p-1), the test function p: 3p-2 integrates it exactly.
-            oral = ufl.ds(domain=mesh, subdomain_data=model.facet_tags, subdomain_id=self._oral_tag(),
+            oral_tag = self._surface_tag("oral", f"model {model.path}: no facets tagged 'oral' (the lining of the lips "
+                                         "and cheeks), so it has no intraoral pressure control; rebuild a built-in "
+                                         "or adapted model, or tag that surface in its mesh (docs/model_format.md)")
+            oral = ufl.ds(domain=mesh, subdomain_data=model.facet_tags, subdomain_id=oral_tag,
                           metadata={"quadrature_degree": 3 * degree - 2})
             normal = ufl.FacetNormal(mesh)
             residual = residual - forms.FollowerPressure(self.pressure).virtual_work(F, normal, v) * oral
@@ -236,8 +239,11 @@ class FaceProblem:
         # equilibrium.
         # With the follower pressure it is not symmetric (module docstring): LU.
         general = {"pc_type": "lu"} if intraoral_pressure else {}
-        self.contact = (ContactPotential(self.V, self._tagged_facets(contact.surface, contact.where), contact)
-                        if contact is not None else None)
+        self.contact = None
+        if contact is not None:
+            tag = self._surface_tag(contact.surface, f"{contact.where}: model {model.path} has no facets tagged "
+                                                     f"{contact.surface!r} to touch the objects")
+            self.contact = ContactPotential(self.V, model.facet_tags.find(tag), contact)
         if self.contact is not None:
             self.contact.check_clear(self.u.x.array)
         self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent="general" if intraoral_pressure else "spd",
@@ -254,23 +260,14 @@ class FaceProblem:
         self.set_controls(self.controls)
 
     # -- set-up ------------------------------------------------------------------------------
-    def _oral_tag(self) -> int:
-        """The tag value of the model's oral surface; a clear error if it has none."""
-        tag = self.model.boundary_ids.get("oral")
+    def _surface_tag(self, name: str, missing: str) -> int:
+        """The tag value of the model's surface ``name``; ValueError(``missing``) if no facet on any
+        rank carries it."""
+        tag = self.model.boundary_ids.get(name)
         count = 0 if tag is None else self.comm.allreduce(len(self.model.facet_tags.find(tag)), op=MPI.SUM)
         if count == 0:
-            raise ValueError(f"model {self.model.path}: no facets tagged 'oral' (the lining of the lips and "
-                             "cheeks), so it has no intraoral pressure control; rebuild a built-in or "
-                             "adapted model, or tag that surface in its mesh (docs/model_format.md)")
+            raise ValueError(missing)
         return tag
-
-    def _tagged_facets(self, name: str, where: str) -> np.ndarray:
-        """The local facets tagged ``name``; a clear error if the model has none."""
-        tag = self.model.boundary_ids.get(name)
-        facets = self.model.facet_tags.find(tag) if tag is not None else np.zeros(0, dtype=np.int32)
-        if self.comm.allreduce(len(facets), op=MPI.SUM) == 0:
-            raise ValueError(f"{where}: model {self.model.path} has no facets tagged {name!r} to touch the objects")
-        return facets
 
     def rest_controls(self) -> Controls:
         """No activation, bones in their rest frames, objects at their rest poses."""
@@ -430,27 +427,27 @@ class FaceProblem:
         direction = np.zeros(self.num_muscles)
         direction[muscle] = 1.0
         self._scatter(direction, self.slots.direction)
-        if out is None:
-            out = fem_petsc.create_vector(self._active_residuals[muscle])
-        with out.localForm() as local:
-            local.set(0.0)
-        fem_petsc.assemble_vector(out, self._active_residuals[muscle])
-        out.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        out.scale(-1.0)  # force = -d(energy)/dx
-        fem_petsc.set_bc(out, self.bcs, scale=0.0)
-        return out
+        # force = -d(energy)/dx
+        return self._assembled_load(self._active_residuals[muscle], out, scale=-1.0)
 
     def pressure_force(self, out: PETSc.Vec | None = None) -> PETSc.Vec:
         """df/dp, the load of a unit intraoral pressure at the current shape (zero on Dirichlet
         dofs): the right-hand side of K dX/dp = df/dp."""
         if not self.has_pressure:
             raise ValueError("this problem has no intraoral pressure control")
+        return self._assembled_load(self._pressure_load, out)
+
+    def _assembled_load(self, form, out: PETSc.Vec | None, scale: float = 1.0) -> PETSc.Vec:
+        """``scale`` times the vector of ``form`` in ``out`` (a new vector if None), ghosts summed,
+        zero on the Dirichlet dofs."""
         if out is None:
-            out = fem_petsc.create_vector(self._pressure_load)
+            out = fem_petsc.create_vector(form)
         with out.localForm() as local:
             local.set(0.0)
-        fem_petsc.assemble_vector(out, self._pressure_load)
+        fem_petsc.assemble_vector(out, form)
         out.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        if scale != 1.0:
+            out.scale(scale)
         fem_petsc.set_bc(out, self.bcs, scale=0.0)
         return out
 
