@@ -64,11 +64,6 @@ class Controls:
                         (1 - t) * self.pressure + t * other.pressure,
                         tuple(a.geodesic(b, t) for a, b in zip(self.objects, other.objects)))
 
-    @classmethod
-    def rest(cls, num_muscles: int) -> "Controls":
-        """No activation, bones in their rest frames."""
-        return cls(np.zeros(num_muscles), AffineMap(), AffineMap())
-
     def copy(self) -> "Controls":
         return Controls(self.activations.copy(), self.cranium, self.jaw, self.pressure, tuple(self.objects))
 
