@@ -10,9 +10,10 @@ keyframes (``read``; docs/animation.md), or the edits of ``face_dolfinx.animatio
 
 Between its samples every control moves on its own space, so that every in-between is a pose the
 face can take (sifakis2005 figure 10): activations linearly (they stay in [0, 1]), the cranium
-on SO(3) x R^3 by the screw motion (``AffineMap.geodesic``: a rotation stays a rotation), the
-jaw by its TMJ values linearly (within their bounds, as the bounds are an interval) when it has
-them, else by the screw motion of its frame.
+by its matrix on SO(3) (``AffineMap.geodesic`` of the matrices: a rotation stays a rotation,
+turning about one axis at a steady rate) and its translation linearly, the jaw by its TMJ values
+linearly (within their bounds, as the bounds are an interval) when it has them, else its frame as
+the cranium's.
 
 The jaw: ``tmj`` (n, 3), where known, is what drives the model's jaw (``bones.jaw_pose`` on the
 model's own jaw geometry, which is what carries a motion from one model to another); ``jaw``
@@ -186,10 +187,10 @@ class Animation:
         i, s = self.segment(t)
         j = min(i + 1, self.n_frames - 1)
         activations = np.clip((1 - s) * self.activations[i] + s * self.activations[j], 0.0, 1.0)
-        cranium = self.cranium[i].geodesic(self.cranium[j], s)
+        cranium = frame_between(self.cranium[i], self.cranium[j], s)
         tmj = None if self.tmj is None else (1 - s) * self.tmj[i] + s * self.tmj[j]
         # With TMJ values those drive the jaw; frames in between would only be a second opinion.
-        jaw = None if self.jaw is None or (tmj is not None and s != 0.0) else [self.jaw[i].geodesic(self.jaw[j], s)]
+        jaw = None if self.jaw is None or (tmj is not None and s != 0.0) else [frame_between(self.jaw[i], self.jaw[j], s)]
         pressure = None if self.pressure is None else [(1 - s) * self.pressure[i] + s * self.pressure[j]]
         return Animation([t], self.muscle_names, activations[None], [cranium], jaw, pressure,
                          None if tmj is None else tmj[None], self.source)
@@ -287,6 +288,19 @@ class Animation:
                 row.append(self.pressure[i])
             lines.append(",".join(repr(float(v)) for v in row))
         return "\n".join(lines) + "\n"
+
+
+def frame_between(first: AffineMap, second: AffineMap, s: float) -> AffineMap:
+    """The bone frame a fraction ``s`` of the way from ``first`` to ``second``: the matrix along
+    the geodesic of SO(3) (``AffineMap.geodesic`` of the matrices alone; a general matrix, as the
+    paper's affine frames, along that of GL(3)), the translation linearly. ``s`` = 0 and 1 give
+    the frames themselves, exactly."""
+    if s == 0.0:
+        return first
+    if s == 1.0:
+        return second
+    matrix = AffineMap(first.matrix).geodesic(AffineMap(second.matrix), s).matrix
+    return AffineMap(matrix, (1 - s) * first.translation + s * second.translation)
 
 
 def concatenate(parts: list[Animation], source: str | None = None) -> Animation:
@@ -516,7 +530,7 @@ def _read_toml(path: pathlib.Path) -> Animation:
         keys_maps = Animation(key_times, [], np.zeros((len(key_times), 0)),
                               [AffineMap(_rotation_from_vector(r), t) for r, t in zip(rotations, shifts)],
                               None, None, np.zeros((len(key_times), 3)), source=f"{path} [head]")
-        # The screw motion between keys (rotations stay rotations); eased like the other curves.
+        # Rotations along SO(3) between keys, translations linearly; eased like the other curves.
         eased = keyframe_curve(key_times, key_times, times, interpolation)
         cranium = [keys_maps.at(float(t)).cranium[0] for t in eased]
     tmj = np.zeros((len(times), 3))
