@@ -15,6 +15,8 @@ NEWTON_TOLERANCE = 1e-8  # mm, the default step tolerance of fit and simulate
 
 
 def write_on_rank_0(path: pathlib.Path, text: str) -> pathlib.Path:
+    """``text`` in ``path``, once every rank is done with whatever was there before."""
+    MPI.COMM_WORLD.barrier()
     if MPI.COMM_WORLD.rank == 0:
         path.write_text(text)
     MPI.COMM_WORLD.barrier()
@@ -183,18 +185,18 @@ def test_strength_applies_to_an_animation(builtin_model_path, shared_dir):
 
 BAD_CSV = [
     ("time_s,mentalis_left,nose_wiggler\n0,0,0\n", "unknown to the model.*nose_wiggler.*the model's muscles: frontalis_left"),
-    ("time_s,mentalis_left\n0,0\n0.1,1.5\n", r"bad\.csv:3: activation of mentalis_left is 1.5, outside \[0, 1\]"),
-    ("time_s,mentalis_left\n0,0\n0.2,0.1\n0.2,0.2\n", r"bad\.csv:4: time 0.2 s is not after the previous row's 0.2 s"),
-    ("time_s,mentalis_left\n0,0\n0.1,abc\n", r"bad\.csv:3: column mentalis_left: 'abc' is not a number"),
-    ("time_s,mentalis_left\n0,0\n0.1\n", r"bad\.csv:3: 1 fields, the header \(line 1\) has 2"),
-    ("mentalis_left\n0\n", r"bad\.csv:1: no time_s column"),
+    ("time_s,mentalis_left\n0,0\n0.1,1.5\n", r"bad\d\.csv:3: activation of mentalis_left is 1.5, outside \[0, 1\]"),
+    ("time_s,mentalis_left\n0,0\n0.2,0.1\n0.2,0.2\n", r"bad\d\.csv:4: time 0.2 s is not after the previous row's 0.2 s"),
+    ("time_s,mentalis_left\n0,0\n0.1,abc\n", r"bad\d\.csv:3: column mentalis_left: 'abc' is not a number"),
+    ("time_s,mentalis_left\n0,0\n0.1\n", r"bad\d\.csv:3: 1 fields, the header \(line 1\) has 2"),
+    ("mentalis_left\n0\n", r"bad\d\.csv:1: no time_s column"),
     ("time_s,cranium_M00\n0,1\n", "the cranium needs all of its columns"),
 ]
 
 
 @pytest.mark.parametrize("text, message", BAD_CSV)
 def test_bad_animation_files_get_one_message_and_leave_nothing(builtin_model_path, shared_dir, text, message):
-    path = write_on_rank_0(shared_dir / "bad.csv", text)
+    path = write_on_rank_0(shared_dir / f"bad{BAD_CSV.index((text, message))}.csv", text)
     out = shared_dir / "never"
     with pytest.raises(SystemExit, match=message):
         main(["simulate", "--model", str(builtin_model_path), "--animation", str(path), "--out", str(out)])
@@ -216,7 +218,7 @@ BAD_TOML = [
 
 @pytest.mark.parametrize("text, message", BAD_TOML)
 def test_bad_keyframe_files(builtin_model_path, shared_dir, text, message):
-    path = write_on_rank_0(shared_dir / "bad.toml", text)
+    path = write_on_rank_0(shared_dir / f"bad{BAD_TOML.index((text, message))}.toml", text)
     out = shared_dir / "never"
     with pytest.raises(SystemExit, match=message):
         main(["simulate", "--model", str(builtin_model_path), "--animation", str(path), "--out", str(out)])

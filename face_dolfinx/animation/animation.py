@@ -265,6 +265,7 @@ class Animation:
         if path.suffix.lower() != ".csv":
             raise AnimationError(f"{path}: animations are written as .csv tables")
         from face_dolfinx.files import atomic_write
+        path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write(path, self.csv_text())
         return path
 
