@@ -233,3 +233,10 @@ def test_what_is_not_an_animation(builtin_model_path, shared_dir):
         main(["simulate", *model, "--animation", str(shared_dir), "--out", str(shared_dir / "x")])
     with pytest.raises(SystemExit, match="--animation plays the animation alone"):
         main(["simulate", "smile", *model, "--animation", str(shared_dir / "smile.csv"), "--out", str(shared_dir / "x")])
+
+
+def test_the_example_animation_fits_the_built_in_face(model):
+    example = Animation.read(pathlib.Path(__file__).resolve().parents[1] / "examples" / "smile_and_nod.toml")
+    example.check(model)
+    assert example.n_frames == 31 and example.times[-1] == pytest.approx(2.0)
+    assert example.activation("zygomaticus_major_left").max() == pytest.approx(0.7)
