@@ -191,6 +191,7 @@ BAD_CSV = [
     ("time_s,mentalis_left\n0,0\n0.1\n", r"bad\d\.csv:3: 1 fields, the header \(line 1\) has 2"),
     ("mentalis_left\n0\n", r"bad\d\.csv:1: no time_s column"),
     ("time_s,cranium_M00\n0,1\n", "the cranium needs all of its columns"),
+    ("time_s,mentalis_left,\n0,0,0\n", r"bad\d\.csv:1: column 3 has no name"),
 ]
 
 
