@@ -88,6 +88,7 @@ def main():
                 warm_solve_s_median=round(float(np.median(warm)), 4), warm_solve_s_mean=round(float(warm.mean()), 4),
                 warm_solve_s_max=round(float(warm.max()), 4), cold_solve_s=round(run.seconds[0], 4),
                 warm_newton_median=int(np.median(iterations)), warm_newton_max=int(iterations.max()),
+                newton_iterations=run.newton_iterations, solve_s=[round(v, 4) for v in run.seconds],
                 wall_s_per_frame=round(wall / len(run.frames), 4),
                 max_activation_step=round(float(np.abs(np.diff(part.activations, axis=0)).max()), 4),
                 load_average_1min=round(os.getloadavg()[0], 2)))  # other work on the machine meanwhile

@@ -276,3 +276,16 @@ def test_resume_after_kill_9_gives_the_same_bytes(builtin_model_path, tmp_path):
     assert main(["simulate", *model, "--animation", str(animation), "--out", str(killed)]) == 0
     names = [f"frames/{f:06d}.displacement.npy" for f in range(12)] + ["activations.csv", "kinematics.csv", "frames.csv"]
     assert [name for name in names if (whole / name).read_bytes() != (killed / name).read_bytes()] == []
+
+
+def test_modified_newton_plays_the_same_frames(fitted, shared_dir):
+    """--reuse-factorization with a 1e-4 mm Newton tolerance: the frames of the default playback
+    to within that tolerance (measured on the 5K face: 1e-6 mm)."""
+    model, fit, played = fitted
+    out = shared_dir / "reused"
+    assert main(["simulate", *model, "--animation", str(fit), "--out", str(out), "--reuse-factorization",
+                 "--newton-tolerance", "1e-4"]) == 0
+    assert json.loads((out / "run.json").read_text())["reuse_factorization"] is True
+    for frame in range(4):
+        name = f"frames/{frame:06d}.displacement.npy"
+        assert np.abs(np.load(out / name) - np.load(played / name)).max() < 1e-4
