@@ -289,3 +289,17 @@ def test_modified_newton_plays_the_same_frames(fitted, shared_dir):
     for frame in range(4):
         name = f"frames/{frame:06d}.displacement.npy"
         assert np.abs(np.load(out / name) - np.load(played / name)).max() < 1e-4
+
+
+def test_pressure_on_a_model_without_an_oral_surface(model, shared_dir):
+    """An animation that presses the mouth, played on a model with no 'oral' surface: one message
+    naming the file, before the results folder exists."""
+    import dataclasses
+    from face_dolfinx.cli.main import parse_arguments, simulate_animation
+    path = write_on_rank_0(shared_dir / "puff.csv", "time_s,buccinator_left,intraoral_pressure_kpa\n0,0,0\n0.1,0.2,0.4\n")
+    out = shared_dir / "never_puffed"
+    args, _ = parse_arguments(["simulate", "--animation", str(path), "--out", str(out)])
+    without_oral = dataclasses.replace(model, boundary_ids={k: v for k, v in model.boundary_ids.items() if k != "oral"})
+    with pytest.raises(SystemExit, match=r"puff\.csv: .*no facets tagged 'oral'"):
+        simulate_animation(without_oral, args)
+    assert not out.exists()

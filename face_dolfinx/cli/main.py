@@ -195,6 +195,14 @@ def simulate_animation(model, args) -> None:
     animation, markers = animation_and_markers(args.animation)
     if args.stop_after is not None and args.stop_after < 1:
         raise SystemExit(f"--stop-after {args.stop_after}: give 1 or more")
+    animation.check(model)
+    start = time.perf_counter()
+    try:  # the model may lack what the animation needs (an 'oral' surface for its pressure)
+        problem = FaceProblem(model, degree=args.degree, intraoral_pressure=animation.has_pressure,
+                              newton_tolerance=args.newton_tolerance, reuse_factorization=args.reuse_factorization)
+    except ValueError as error:
+        raise SystemExit(f"face-dolfinx: error: {animation.source}: {error}") from None
+    setup = time.perf_counter() - start
     try:
         folder, markers = open_playback(model, animation, args.out, markers=markers, overwrite=args.overwrite,
                                         extra=dict(degree=args.degree, strength=args.strength,
@@ -207,12 +215,9 @@ def simulate_animation(model, args) -> None:
                  folder.path)
         return
     _setup_logging(folder.path, verbose=args.verbose)
-    start = time.perf_counter()
-    problem = FaceProblem(model, degree=args.degree, intraoral_pressure=animation.has_pressure,
-                          newton_tolerance=args.newton_tolerance, reuse_factorization=args.reuse_factorization)
     log.info("model %s: %d tets, %d muscles; animation %s: %d frames, %.3g s; set-up %.1f s", model.name,
              model.mesh.topology.index_map(3).size_global, problem.num_muscles, animation.source,
-             animation.n_frames, animation.times[-1] - animation.times[0], time.perf_counter() - start)
+             animation.n_frames, animation.times[-1] - animation.times[0], setup)
     run = play(problem, animation, folder, markers, stop_after=args.stop_after)
     if run.seconds:
         log.info("%d frames: Newton %d its per frame (median), %.2f s per frame (median)", len(run.frames),
