@@ -15,8 +15,9 @@ written, as the command does; the report at the end is not timed), once per ``--
             (``FaceProblem(reuse_factorization=True)``)
 
 One JSON line per variant: the warm frames' solve seconds (every frame but the first, which
-starts from rest) and Newton iterations, and the wall time per frame of the whole loop (the cold
-first frame, marker evaluation and writing included).
+starts from rest) and Newton iterations, the wall time per frame of the whole loop (the cold
+first frame, marker evaluation and writing included) and rank 0's CPU time per frame, and the
+machine's load average (the figures are only comparable at the same load).
 
     mpirun -n 2 python benchmarks/edit_speed.py --tets 20000 --out ../benchmarks/results/edit/edit_20k_np2.jsonl
 """
@@ -76,9 +77,9 @@ def main():
         for variant in args.variants:
             problem = FaceProblem(model, **VARIANTS[variant])
             folder, markers = open_playback(model, part, scratch / variant, markers=PlaybackMarkers.of_model(model))
-            began = time.perf_counter()
+            began, cpu = time.perf_counter(), time.process_time()
             run = play(problem, part, folder, markers, stop_after=args.frames, progress=False)
-            wall = time.perf_counter() - began
+            wall, cpu = time.perf_counter() - began, time.process_time() - cpu
             warm = np.array(run.seconds[1:])
             iterations = np.array(run.newton_iterations[1:])
             rows.append(dict(
@@ -90,6 +91,9 @@ def main():
                 warm_newton_median=int(np.median(iterations)), warm_newton_max=int(iterations.max()),
                 newton_iterations=run.newton_iterations, solve_s=[round(v, 4) for v in run.seconds],
                 wall_s_per_frame=round(wall / len(run.frames), 4),
+                # CPU time of rank 0 per frame: less sensitive to other work on the machine than the
+                # wall time (MPI's busy waiting included)
+                cpu_s_per_frame_rank0=round(cpu / len(run.frames), 4),
                 max_activation_step=round(float(np.abs(np.diff(part.activations, axis=0)).max()), 4),
                 load_average_1min=round(os.getloadavg()[0], 2)))  # other work on the machine meanwhile
     finally:
