@@ -19,7 +19,7 @@ starts from rest) and Newton iterations, the wall time per frame of the whole lo
 first frame, marker evaluation and writing included) and rank 0's CPU time per frame, and the
 machine's load average (the figures are only comparable at the same load).
 
-    mpirun -n 2 python benchmarks/edit_speed.py --tets 20000 --out ../benchmarks/results/edit/edit_20k_np2.jsonl
+    mpirun -n 2 python benchmarks/edit_speed.py --tets 20000 --out benchmarks/results/edit/edit_20k_np2.jsonl
 """
 import argparse
 import json

@@ -63,5 +63,7 @@ for study in forward ramp remote head damage; do
 done
 $PYTHON benchmarks/stability.py --collect $RESULTS/stability/{forward_5k-20k,ramp_1k-20k,remote_5k,head_5k,damage_5k}.jsonl \
   --plot docs/img/stability > runs/stability_tables.md
+# Warm-started frames of an edited animation played back (docs/animation.md).
+mpirun -n 2 $PYTHON benchmarks/edit_speed.py --tets 20000 --out $RESULTS/edit/edit_20k_np2.jsonl
 # The model ladder (writes its own tables and figures).
 benchmarks/run_ladder.sh
