@@ -13,7 +13,6 @@
 Also under mpirun -n 2.
 """
 import dataclasses
-import json
 import math
 
 from mpi4py import MPI
