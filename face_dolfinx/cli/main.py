@@ -181,6 +181,46 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
     return rows
 
 
+def simulate_animation(model, args) -> None:
+    """Play an animation (a CSV or TOML file, or a fit or simulation results folder) on the model
+    into a results folder like a fit's, resumable frame by frame
+    (``face_dolfinx.animation.playback``)."""
+    from face_dolfinx.animation.playback import animation_and_markers, open_playback, play
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.results.folder import FitFolderError
+    # Every input is checked before the result folder exists: a bad input leaves nothing behind.
+    animation, markers = animation_and_markers(args.animation)
+    if args.stop_after is not None and args.stop_after < 1:
+        raise SystemExit(f"--stop-after {args.stop_after}: give 1 or more")
+    try:
+        folder, markers = open_playback(model, animation, args.out, markers=markers, overwrite=args.overwrite,
+                                        extra=dict(degree=args.degree, strength=args.strength,
+                                                   newton_tolerance=args.newton_tolerance))
+    except FitFolderError as error:
+        raise SystemExit(str(error)) from None
+    if folder.finished:
+        log.info("%s already holds this simulation, finished: nothing to do (--overwrite simulates again)",
+                 folder.path)
+        return
+    _setup_logging(folder.path, verbose=args.verbose)
+    start = time.perf_counter()
+    problem = FaceProblem(model, degree=args.degree, intraoral_pressure=animation.has_pressure,
+                          newton_tolerance=args.newton_tolerance)
+    log.info("model %s: %d tets, %d muscles; animation %s: %d frames, %.3g s; set-up %.1f s", model.name,
+             model.mesh.topology.index_map(3).size_global, problem.num_muscles, animation.source,
+             animation.n_frames, animation.times[-1] - animation.times[0], time.perf_counter() - start)
+    run = play(problem, animation, folder, markers, stop_after=args.stop_after)
+    if run.seconds:
+        log.info("%d frames: Newton %d its per frame (median), %.2f s per frame (median)", len(run.frames),
+                 int(np.median(run.newton_iterations)), float(np.median(run.seconds)))
+    if not run.finished:
+        log.info("%d frames still to simulate; rerun the same command to continue %s", len(run.missing),
+                 folder.path)
+        return
+    log.info("results: %s (plots: *.png and renders/; ParaView: face.xdmf; run.py video %s)",
+             folder.path.resolve(), folder.path)
+
+
 def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -> list[dict]:
     """The contact object along ``poses`` (the first is where it stands), one solve and one face
     frame per pose; the object's surface as its own XDMF series (a fan of tetrahedra from its
@@ -474,6 +514,7 @@ def _render_expression(problem, path: pathlib.Path, title: str) -> None:
 def main(argv=None) -> int:
     """Run a command line; errors in what the user gave (files, options) end it with one message."""
     from face_dolfinx.alignment.similarity import AlignmentError
+    from face_dolfinx.animation import AnimationError
     from face_dolfinx.capture import CaptureError
     from .config import ConfigError
     from face_dolfinx.model.folder import ModelError
@@ -481,7 +522,8 @@ def main(argv=None) -> int:
     from face_dolfinx.tracking import MarkerSetupError
     try:
         return _main(argv)
-    except (AlignmentError, CaptureError, ConfigError, MarkerSetupError, ModelError, SubjectError) as error:
+    except (AlignmentError, AnimationError, CaptureError, ConfigError, MarkerSetupError, ModelError,
+            SubjectError) as error:
         raise SystemExit(f"face-dolfinx: error: {error}") from None
 
 
@@ -529,6 +571,15 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="a rigid sphere (radius in mm) pressed against the skin along --path (docs/contact.md)")
     p.add_argument("--path", metavar="FILE",
                    help="the object's centre over time: one 'x y z' line (mm, model frame) per frame")
+    p.add_argument("--animation", metavar="FILE|FOLDER",
+                   help="play an animation: a CSV or TOML file (docs/animation.md) or a fit or simulation "
+                        "results folder; writes a results folder like a fit's, resumable frame by frame")
+    p.add_argument("--stop-after", type=int, metavar="N",
+                   help="with --animation: stop after N frames, leaving the folder unfinished; the same "
+                        "command without it continues where this one stopped")
+    p.add_argument("--newton-tolerance", type=float, default=1e-8, metavar="MM",
+                   help="with --animation: Newton stops once a correction moves no node further than this "
+                        "(default 1e-8 mm)")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     p = sub.add_parser("demo", help="the main job: build the face, synthesise a take, fit it",
@@ -674,7 +725,8 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
         args, petsc_args = parser.parse_known_args(argv)
     for command, positional in (("fit", "capture"), ("simulate", "expressions")):
         moving_an_object = command == "simulate" and getattr(args, "path", None) is not None
-        if args.command == command and not getattr(args, positional) and not moving_an_object:
+        animating = command == "simulate" and getattr(args, "animation", None) is not None
+        if args.command == command and not getattr(args, positional) and not (moving_an_object or animating):
             sub.choices[command].error(f"the {positional} argument is required (on the command line or "
                                        f"as {positional!r} in the --config file)")
     if args.command == "build" and (args.subject or args.surface):
@@ -731,6 +783,12 @@ def _main(argv=None) -> int:
         return 0
     if args.command == "fit":
         fit(model, args)
+        return 0
+    if args.animation is not None:
+        if args.expressions or args.object or args.path or args.coarse:
+            raise SystemExit("--animation plays the animation alone: give no expressions, --object, --path "
+                             "or --coarse with it")
+        simulate_animation(model, args)
         return 0
     out = pathlib.Path(args.out)
     contact = _object_from_args(args)
