@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from conftest import on_rank_0
-from face_dolfinx.animation.retarget import Motion, RetargetError, carry_tmj, retarget
+from face_dolfinx.animation import Animation
+from face_dolfinx.animation.retarget import RetargetError, carry_tmj, retarget
 from face_dolfinx.capture.synthetic import synthesize_take
 from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
 from face_dolfinx.model.bones import AffineMap, jaw_pose, rigid_map, rotation, tmj_values
@@ -56,13 +57,13 @@ def scaled_copy(template, shared_dir):
     return affine_subject(template, COPY_SCALE * COPY_TURN, COPY_SHIFT, shared_dir / "scaled", "scaled_copy")
 
 
-def simulate(model, motion, sites):
-    """Markers at ``sites`` (markers, 3) of the model driven by ``motion``, frame after frame."""
+def simulate(model, animation, sites):
+    """Markers at ``sites`` (markers, 3) of the model driven by ``animation``, frame after frame."""
     problem = FaceProblem(model)
     markers = MarkerSet(problem, sites)
     positions = []
-    for frame in range(len(motion.times)):
-        controls = motion.controls(frame, model.jaw)
+    for frame in range(animation.n_frames):
+        controls = animation.frame_controls(frame, model)
         problem.solve(activations=controls.activations, cranium=controls.cranium, jaw=controls.jaw)
         positions.append(markers.positions(problem.u.x.array, controls.cranium))
     return np.array(positions)
@@ -81,9 +82,8 @@ def test_scaled_copy_moves_as_the_scaled_copy_of_the_motion(model, template, sca
             activations[model.muscle_index(name)] = value
     head = rigid_map(rotation([1.0, 0.3, 0.0], math.radians(5.0)), np.array([0.0, -40.0, 10.0]),
                      np.array([1.5, -2.0, 0.5]))
-    motion = Motion([0.0], model.muscle_names, [activations], [head], [[0.15, 2.0, 3.0]], [0.0])
-    moved = retarget(motion, template, copy_arrays)
-    record = moved.record
+    motion = Animation([0.0], model.muscle_names, [activations], [head], None, tmj=[[0.15, 2.0, 3.0]])
+    moved, record = retarget(motion, template, copy_arrays)
     assert record["head"]["scale"] == pytest.approx(COPY_SCALE, rel=1e-12)
     assert np.allclose(record["head"]["rotation"], COPY_TURN, atol=1e-12)
     assert moved.tmj[0] == pytest.approx([0.15, 2.0 * COPY_SCALE, 3.0 * COPY_SCALE], rel=1e-12)
@@ -104,9 +104,10 @@ def test_round_trip_through_a_differently_proportioned_subject(model, template, 
     capture, _ = synthesize_take(problem, MarkerSet(problem, sites), model, "speech", n_frames=FRAMES,
                                  noise=0.3, seed=5)
     fitted = track(FaceFitter(problem, MarkerSet(problem, sites), FitSettings()), capture.positions)
-    motion = Motion.from_results(capture.times, model.muscle_names, fitted, model.jaw)
-    moved = retarget(motion, template, subject_arrays)
-    assert moved.record["muscles"]["dropped"] == {} and moved.record["muscles"]["held_at_rest"] == []
+    motion = Animation(capture.times, model.muscle_names, [r.activations for r in fitted], [r.cranium for r in fitted],
+                       None, tmj=[r.jaw_tmj for r in fitted])
+    moved, record = retarget(motion, template, subject_arrays)
+    assert record["muscles"]["dropped"] == {} and record["muscles"]["held_at_rest"] == []
     assert np.array_equal(moved.activations, motion.activations)
     subject_sites = np.array(list(subject_model.markers.values()))
     markers = simulate(subject_model, moved, subject_sites)
@@ -155,14 +156,14 @@ def test_different_muscle_sets_map_what_they_share(model, template):
     renamed = dataclasses.replace(template.muscles[2], name="procerus")
     target = dataclasses.replace(template, muscles=kept + [renamed])
     activations = np.linspace(0.0, 0.6, len(template.muscles))[None, :]
-    motion = Motion([0.0], model.muscle_names, activations, [AffineMap()], [[0.0, 0.0, 0.0]], [0.0])
-    moved = retarget(motion, template, target)
-    record = moved.record["muscles"]
+    motion = Animation([0.0], model.muscle_names, activations, [AffineMap()], None, tmj=np.zeros((1, 3)))
+    moved, record = retarget(motion, template, target)
+    record = record["muscles"]
     assert record["mapped"] == [m.name for m in kept]
     assert record["dropped"] == {m.name: pytest.approx(a) for m, a in zip(template.muscles[:2], activations[0, :2])}
     assert record["held_at_rest"] == ["procerus"]
-    assert moved.muscle_names == [m.name for m in kept] + ["procerus"]
-    assert np.array_equal(moved.activations[0], np.append(activations[0, 2:], 0.0))
+    assert moved.muscle_names == tuple(m.name for m in kept)  # procerus: not named, so at rest
+    assert np.array_equal(moved.activations[0], activations[0, 2:])
 
 
 def test_jaw_is_clamped_to_the_targets_bounds(template):
@@ -175,19 +176,31 @@ def test_jaw_is_clamped_to_the_targets_bounds(template):
     assert record["clamped_frames"] == dict(opening=1, slide_right=0, slide_left=1)
 
 
+def test_jaw_given_by_frames_carries_its_tmj_values(model, template, subject):
+    """A paper-mode fit gives the jaw as frames: their TMJ values (``bones.tmj_values``) carry over."""
+    tmj = np.array([[0.2, 1.0, 3.0], [0.05, 0.0, 0.0]])
+    frames = Animation([0.0, 0.1], model.muscle_names, np.zeros((2, len(template.muscles))), [AffineMap()] * 2,
+                       [jaw_pose(template.jaw, *values) for values in tmj])
+    values = Animation([0.0, 0.1], model.muscle_names, np.zeros((2, len(template.muscles))), [AffineMap()] * 2,
+                       None, tmj=tmj)
+    subject_arrays = subject[1]
+    assert retarget(frames, template, subject_arrays)[0].tmj == pytest.approx(
+        retarget(values, template, subject_arrays)[0].tmj, abs=1e-12)
+
+
 def test_bad_targets_are_refused_with_one_message(model, template):
-    moving_jaw = Motion([0.0], model.muscle_names, np.zeros((1, len(template.muscles))), [AffineMap()],
-                        [[0.2, 0.0, 0.0]], [0.0])
+    moving_jaw = Animation([0.0], model.muscle_names, np.zeros((1, len(template.muscles))), [AffineMap()], None,
+                           tmj=[[0.2, 0.0, 0.0]])
     values = template.facet_values.copy()
     values[values == template.boundary_ids["mandible"]] = template.boundary_ids["free"]
     jawless = dataclasses.replace(template, facet_values=values)
     with pytest.raises(RetargetError, match=r"has no jaw \(no facets tagged mandible\).*opening up to 11.5 deg"):
         retarget(moving_jaw, template, jawless)
     still_jaw = dataclasses.replace(moving_jaw, tmj=np.zeros((1, 3)))
-    assert retarget(still_jaw, template, jawless).record["muscles"]["dropped"] == {}
+    assert retarget(still_jaw, template, jawless)[1]["muscles"]["dropped"] == {}
     strangers = dataclasses.replace(template, muscles=[dataclasses.replace(m, name=f"other_{m.name}")
                                                        for m in template.muscles])
-    with pytest.raises(RetargetError, match="shares no muscle with the take"):
+    with pytest.raises(RetargetError, match="shares no muscle with the animation"):
         retarget(still_jaw, template, strangers)
     values[values == template.boundary_ids["oral"]] = template.boundary_ids["free"]
     puffing = dataclasses.replace(still_jaw, pressure=np.array([2.0]))

@@ -18,12 +18,12 @@ computer model with an equivalent muscle structure"). No markers are needed on t
 - **Intraoral pressure** (kPa) carries over as it is; a target without an ``oral`` surface takes
   none: an error if the take uses it.
 
-``retarget`` returns the target's controls over time (``Motion``) and a record of what was mapped,
-dropped and clamped, which the ``retarget`` command writes beside the animation.
+``retarget`` takes an ``Animation`` on the source model and returns the ``Animation`` of the target
+(the shared muscles by name, the cranium frames, the TMJ values, the pressure) and a record of what
+was mapped, dropped and clamped, which the ``retarget`` command writes beside the animation.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 import json
 import logging
 import math
@@ -31,10 +31,10 @@ import pathlib
 
 import numpy as np
 
+from face_dolfinx.animation.animation import Animation
 from face_dolfinx.alignment.similarity import AlignmentError, Similarity, similarity_transform
-from face_dolfinx.model.bones import AffineMap, jaw_pose, tmj_upper_limits, tmj_values
+from face_dolfinx.model.bones import AffineMap, tmj_upper_limits, tmj_values
 from face_dolfinx.model.folder import ModelArrays
-from face_dolfinx.physics.problem import Controls
 
 log = logging.getLogger(__name__)
 
@@ -45,64 +45,13 @@ class RetargetError(ValueError):
     """A take cannot be carried onto a model; the message names the model and the problem."""
 
 
-@dataclass
-class Motion:
-    """Controls over time on one model: activations by muscle name, the cranium frame (model
-    coordinates), the TMJ values (opening rad, right and left slides mm), the intraoral pressure (kPa)."""
-
-    times: np.ndarray            # (frames,) s
-    muscle_names: list[str]
-    activations: np.ndarray      # (frames, muscles)
-    cranium: list[AffineMap]     # per frame
-    tmj: np.ndarray              # (frames, 3)
-    pressure: np.ndarray         # (frames,)
-    record: dict = field(default_factory=dict)
-
-    def __post_init__(self):
-        self.times = np.asarray(self.times, dtype=float).reshape(-1)
-        frames = len(self.times)
-        self.activations = np.asarray(self.activations, dtype=float).reshape(frames, len(self.muscle_names))
-        self.tmj = np.asarray(self.tmj, dtype=float).reshape(frames, 3)
-        self.pressure = np.asarray(self.pressure, dtype=float).reshape(frames)
-        if len(self.cranium) != frames:
-            raise ValueError(f"{len(self.cranium)} cranium frames for {frames} times")
-
-    @classmethod
-    def from_results(cls, times, muscle_names: list[str], results, jaw) -> Motion:
-        """The controls of fitted frames (``FrameResult``s, in order); ``jaw``: the fitted model's
-        ``JawGeometry``, for frames fitted without TMJ values (paper mode)."""
-        return cls(np.asarray(times, dtype=float), list(muscle_names), [r.activations for r in results],
-                   [r.cranium for r in results],
-                   [r.jaw_tmj if r.jaw_tmj is not None else tmj_values(jaw, r.jaw) for r in results],
-                   [r.pressure for r in results])
-
-    def controls(self, frame: int, jaw) -> Controls:
-        """The ``Controls`` of ``frame`` on a model with ``JawGeometry`` ``jaw`` (muscles in this
-        motion's order, which ``retarget`` makes the target's)."""
-        return Controls(self.activations[frame].copy(), self.cranium[frame], jaw_pose(jaw, *self.tmj[frame]),
-                        float(self.pressure[frame]))
-
-
-def fit_motion(folder, model: ModelArrays) -> Motion:
-    """The fitted controls of every finished frame of a fit folder, fitted on ``model``."""
-    from face_dolfinx.results.folder import FitFolder
-    fit = FitFolder(folder)
-    results = [result for _, result in sorted(fit.finished_frames().items())]
-    if not results:
-        raise RetargetError(f"{fit.path}: no fitted frame to retarget")
-    if fit.muscle_names != [m.name for m in model.muscles]:
-        raise RetargetError(f"{fit.path} was fitted with muscles {', '.join(fit.muscle_names)}, which are not "
-                            f"those of the source model {model.name} ({fit.settings.get('model')})")
-    return Motion.from_results(fit.times[[r.frame for r in results]], fit.muscle_names, results, model.jaw)
-
-
-def fitted_model_path(folder) -> pathlib.Path:
-    """The model a fit folder was fitted on (its run.json)."""
-    from face_dolfinx.results.folder import FitFolder
-    path = FitFolder(folder).settings.get("model")
-    if not path:
-        raise RetargetError(f"{folder}: run.json names no model; give the source model")
-    return pathlib.Path(path)
+def source_model_path(animation_path) -> pathlib.Path | None:
+    """The model a fit or simulation folder was made on (its run.json), None for an animation file."""
+    run = pathlib.Path(animation_path) / "run.json"
+    if not run.is_file():
+        return None
+    model = json.loads(run.read_text()).get("model")
+    return pathlib.Path(model) if model else None
 
 
 def has_surface(model: ModelArrays, name: str) -> bool:
@@ -151,51 +100,55 @@ def carry_tmj(tmj: np.ndarray, source_jaw, target_jaw) -> tuple[np.ndarray, dict
     return clamped, record
 
 
-def retarget(motion: Motion, source: ModelArrays, target: ModelArrays, *,
-             source_label: str | None = None, target_label: str | None = None) -> Motion:
-    """``motion`` on ``source`` carried onto ``target`` (module docstring). The record says what
-    was mapped, dropped, held at rest and clamped, and the head similarity."""
+def retarget(animation: Animation, source: ModelArrays, target: ModelArrays, *,
+             target_label: str | None = None) -> tuple[Animation, dict]:
+    """``animation`` of ``source`` carried onto ``target`` (module docstring), and the record of
+    what was mapped, dropped, held at rest and clamped, and of the head similarity."""
     target_label = target_label or target.name
     target_names = [m.name for m in target.muscles]
-    shared = [name for name in motion.muscle_names if name in target_names]
+    names = list(animation.muscle_names)
+    shared = [name for name in names if name in target_names]
     if not shared:
-        raise RetargetError(f"target model {target_label} shares no muscle with the take (take: "
-                            f"{', '.join(motion.muscle_names[:4])}, ...; target: {', '.join(target_names[:4])}, ...)")
-    opening, slides = motion.tmj[:, 0].max(initial=0.0), np.abs(motion.tmj[:, 1:]).max(initial=0.0)
+        raise RetargetError(f"target model {target_label} shares no muscle with {animation.source} (its muscles: "
+                            f"{', '.join(names[:4])}{', ...' if len(names) > 4 else ''}; the target's: "
+                            f"{', '.join(target_names[:4])}, ...)")
+    tmj = (animation.tmj if animation.tmj is not None
+           else np.array([tmj_values(source.jaw, frame) for frame in animation.jaw]))
+    opening, slides = tmj[:, 0].max(initial=0.0), np.abs(tmj[:, 1:]).max(initial=0.0)
     if not has_surface(target, "mandible") and (opening > 0 or slides > 0):
-        raise RetargetError(f"target model {target_label} has no jaw (no facets tagged mandible), and the take "
-                            f"moves the jaw (opening up to {math.degrees(opening):.3g} deg, slides up to "
-                            f"{slides:.3g} mm)")
-    pressure = np.abs(motion.pressure).max(initial=0.0)
+        raise RetargetError(f"target model {target_label} has no jaw (no facets tagged mandible), and "
+                            f"{animation.source} moves the jaw (opening up to {math.degrees(opening):.3g} deg, "
+                            f"slides up to {slides:.3g} mm)")
+    pressure = np.abs(animation.pressure).max(initial=0.0) if animation.pressure is not None else 0.0
     if pressure > 0 and not has_surface(target, "oral"):
         raise RetargetError(f"target model {target_label} has no oral surface (no facets tagged oral) for the "
-                            f"take's intraoral pressure (up to {pressure:.3g} kPa)")
+                            f"intraoral pressure of {animation.source} (up to {pressure:.3g} kPa)")
 
-    activations = np.zeros((len(motion.times), len(target_names)))
-    for name in shared:
-        activations[:, target_names.index(name)] = motion.activations[:, motion.muscle_names.index(name)]
-    dropped = {name: float(motion.activations[:, i].max(initial=0.0))
-               for i, name in enumerate(motion.muscle_names) if name not in target_names}
-    at_rest = [name for name in target_names if name not in motion.muscle_names]
+    dropped = {name: float(animation.activation(name).max(initial=0.0)) for name in names if name not in shared}
+    at_rest = [name for name in target_names if name not in names]
     similarity, head_points = head_similarity(source, target)
-    cranium = [carry_head(frame, similarity) for frame in motion.cranium]
-    tmj, jaw_record = carry_tmj(motion.tmj, source.jaw, target.jaw)
+    cranium = [carry_head(frame, similarity) for frame in animation.cranium]
+    carried_tmj, jaw_record = carry_tmj(tmj, source.jaw, target.jaw)
     if dropped:
         log.warning("retarget onto %s drops %d muscles it lacks: %s", target_label, len(dropped),
                     ", ".join(f"{name} (up to {value:.3g})" for name, value in dropped.items()))
     if at_rest:
-        log.info("retarget onto %s holds %d muscles the take lacks at rest: %s", target_label, len(at_rest),
-                 ", ".join(at_rest))
+        log.info("retarget onto %s holds %d muscles the animation lacks at rest: %s", target_label,
+                 len(at_rest), ", ".join(at_rest))
     if any(jaw_record["clamped_frames"].values()):
         log.warning("retarget onto %s clamps the jaw to its bounds in some frames: %s", target_label,
                     jaw_record["clamped_frames"])
     record = dict(
-        source=source_label or source.name, target=target_label, frames=len(motion.times),
-        muscles=dict(mapped=shared, dropped=dropped, held_at_rest=at_rest),
+        source=animation.source, source_model=source.name, target_model=target_label,
+        frames=animation.n_frames, muscles=dict(mapped=shared, dropped=dropped, held_at_rest=at_rest),
         head=dict(points=head_points, scale=similarity.scale, rotation=similarity.rotation.tolist(),
                   translation_mm=similarity.translation.tolist(), rms_mm=similarity.rms),
         jaw=jaw_record, intraoral_pressure_kpa_max=float(pressure))
-    return Motion(motion.times.copy(), target_names, activations, cranium, tmj, motion.pressure.copy(), record)
+    activations = np.column_stack([animation.activation(name) for name in shared])
+    moved = Animation(animation.times, shared, activations, cranium, None,
+                      None if animation.pressure is None else animation.pressure.copy(), carried_tmj,
+                      source=f"{animation.source} retargeted to {target_label}")
+    return moved, record
 
 
 def record_path(animation_file) -> pathlib.Path:
@@ -204,8 +157,8 @@ def record_path(animation_file) -> pathlib.Path:
     return path.with_name(path.stem + ".retarget.json")
 
 
-def write_record(animation_file, motion: Motion) -> pathlib.Path:
+def write_record(animation_file, record: dict) -> pathlib.Path:
     from face_dolfinx.files import atomic_write
     path = record_path(animation_file)
-    atomic_write(path, json.dumps(motion.record, indent=2))
+    atomic_write(path, json.dumps(record, indent=2))
     return path
