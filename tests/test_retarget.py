@@ -13,6 +13,7 @@
 Also under mpirun -n 2.
 """
 import dataclasses
+import json
 import math
 
 from mpi4py import MPI
@@ -206,3 +207,60 @@ def test_bad_targets_are_refused_with_one_message(model, template):
     puffing = dataclasses.replace(still_jaw, pressure=np.array([2.0]))
     with pytest.raises(RetargetError, match=r"no oral surface .*\(up to 2 kPa\)"):
         retarget(puffing, template, dataclasses.replace(template, facet_values=values))
+
+
+def test_retarget_command_carries_a_fit_that_simulate_plays(builtin_model_path, subject, shared_dir):
+    """synth and fit on the small face, retarget the fit folder onto subject B, play it there."""
+    from face_dolfinx.cli.main import main
+    from face_dolfinx.results.folder import FitFolder
+    subject_model, subject_arrays = subject
+    folder = shared_dir / "command"
+    take, fit, animation = folder / "take.trc", folder / "fit", folder / "on_b.csv"
+    model = ["--model", str(builtin_model_path)]
+    assert main(["synth", *model, "--frames", "3", "--noise", "0.2", "--out", str(take)]) == 0
+    assert main(["fit", str(take), *model, "--out", str(fit)]) == 0
+    assert main(["retarget", str(fit), "--model", str(subject_model.path), "--out", str(animation)]) == 0
+    record = json.loads((folder / "on_b.retarget.json").read_text())
+    assert record["source_model"] == str(builtin_model_path) and record["frames"] == 3
+    assert record["head"]["scale"] == pytest.approx(np.linalg.det(SUBJECT_STRETCH) ** (1 / 3), rel=0.05)
+    played = Animation.read(animation)
+    expected, _ = retarget(Animation.read(fit), read_model_arrays(builtin_model_path, check=False), subject_arrays)
+    assert np.array_equal(played.activations, expected.activations) and np.array_equal(played.tmj, expected.tmj)
+    assert main(["simulate", *["--model", str(subject_model.path)], "--animation", str(animation),
+                 "--out", str(folder / "sim"), "--no-render"]) == 0
+    frames = FitFolder(folder / "sim").finished_frames()
+    assert sorted(frames) == [0, 1, 2]
+    for frame, result in frames.items():
+        controls = played.frame_controls(frame, subject_model)
+        assert np.array_equal(result.activations, controls.activations)
+        assert result.cranium.same_as(controls.cranium)
+    with pytest.raises(SystemExit, match="exists; pass --overwrite"):
+        main(["retarget", str(fit), "--model", str(subject_model.path), "--out", str(animation)])
+
+
+@pytest.mark.parametrize("change, message", [
+    ("jawless", r"has no jaw \(no facets tagged mandible\)"),
+    ("strangers", "shares no muscle"),
+])
+def test_retarget_command_refuses_bad_targets_writing_nothing(builtin_model_path, template, shared_dir,
+                                                              change, message):
+    from face_dolfinx.cli.main import main
+    folder = shared_dir / "refused" / change
+    values = template.facet_values.copy()
+    if change == "jawless":
+        values[values == template.boundary_ids["mandible"]] = template.boundary_ids["free"]
+    muscles = [dataclasses.replace(m, name=f"other_{m.name}") if change == "strangers" else m
+               for m in template.muscles]
+    expressions = {} if change == "strangers" else template.expressions  # they name the muscles
+    on_rank_0(lambda: dataclasses.replace(template, facet_values=values, muscles=muscles,
+                                          expressions=expressions).write(folder / "target"))
+    take = shared_dir / "refused" / "jaw.csv"
+    names = ",".join(template.muscles[i].name for i in (0, 1))
+    on_rank_0(lambda: take.write_text(f"time_s,{names},jaw_opening_deg\n0,0.1,0.2,0\n0.1,0.3,0.4,8\n"))
+    out = folder / "never.csv"
+    with pytest.raises(SystemExit, match=message):
+        main(["retarget", str(take), "--source-model", str(builtin_model_path), "--model", str(folder / "target"),
+              "--out", str(out)])
+    assert not out.exists() and not (folder / "never.retarget.json").exists()
+    with pytest.raises(SystemExit, match="does not name the model it was made for; give --source-model"):
+        main(["retarget", str(take), "--model", str(folder / "target"), "--out", str(out)])
