@@ -15,12 +15,14 @@ entry, each on a fresh problem:
 
 One JSON line per variant: the first frame (from rest) apart, then the warm-started frames' solve
 seconds (median, mean, max) and Newton iterations (median), the model's exact tet count, the ranks,
-and the retarget record's head scale and RMS.
+the retarget record's head scale and RMS, and the machine's 1-minute load average before and after
+(timings on a loaded machine are longer by about the load over the cores).
 
     mpirun -n 2 python benchmarks/retarget_speed.py --tets 20000 --frames 20 --out results/retarget/x.jsonl
 """
 import argparse
 import json
+import os
 import pathlib
 import sys
 
@@ -80,6 +82,7 @@ def main(argv=None) -> None:
     for variant in args.variants:
         problem = FaceProblem(target, **options[variant])
         folder, markers = open_playback(target, moved, work / f"play_{source_path.name}_{variant}", overwrite=True)
+        load = os.getloadavg()[0]  # the machine is shared: what else ran
         run = play(problem, moved, folder, markers, progress=False)
         warm, iterations = np.array(run.seconds[1:]), np.array(run.newton_iterations[1:])
         lines.append(dict(
@@ -89,7 +92,8 @@ def main(argv=None) -> None:
             warm_median_s=float(np.median(warm)), warm_mean_s=float(warm.mean()), warm_max_s=float(warm.max()),
             warm_newton_median=float(np.median(iterations)), warm_newton_max=int(iterations.max()),
             head_scale=record["head"]["scale"], head_rms_mm=record["head"]["rms_mm"],
-            jaw_clamped_frames=record["jaw"]["clamped_frames"]))
+            jaw_clamped_frames=record["jaw"]["clamped_frames"], load_average_1min=load,
+            load_average_1min_after=os.getloadavg()[0]))
     if comm.rank == 0:
         text = "".join(json.dumps(line) + "\n" for line in lines)
         if args.out:
