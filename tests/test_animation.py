@@ -15,6 +15,8 @@ NEWTON_TOLERANCE = 1e-8  # mm, the default step tolerance of fit and simulate
 
 
 def write_on_rank_0(path: pathlib.Path, text: str) -> pathlib.Path:
+    """``text`` in ``path``, once every rank is done with whatever was there before."""
+    MPI.COMM_WORLD.barrier()
     if MPI.COMM_WORLD.rank == 0:
         path.write_text(text)
     MPI.COMM_WORLD.barrier()
@@ -183,18 +185,19 @@ def test_strength_applies_to_an_animation(builtin_model_path, shared_dir):
 
 BAD_CSV = [
     ("time_s,mentalis_left,nose_wiggler\n0,0,0\n", "unknown to the model.*nose_wiggler.*the model's muscles: frontalis_left"),
-    ("time_s,mentalis_left\n0,0\n0.1,1.5\n", r"bad\.csv:3: activation of mentalis_left is 1.5, outside \[0, 1\]"),
-    ("time_s,mentalis_left\n0,0\n0.2,0.1\n0.2,0.2\n", r"bad\.csv:4: time 0.2 s is not after the previous row's 0.2 s"),
-    ("time_s,mentalis_left\n0,0\n0.1,abc\n", r"bad\.csv:3: column mentalis_left: 'abc' is not a number"),
-    ("time_s,mentalis_left\n0,0\n0.1\n", r"bad\.csv:3: 1 fields, the header \(line 1\) has 2"),
-    ("mentalis_left\n0\n", r"bad\.csv:1: no time_s column"),
+    ("time_s,mentalis_left\n0,0\n0.1,1.5\n", r"bad\d\.csv:3: activation of mentalis_left is 1.5, outside \[0, 1\]"),
+    ("time_s,mentalis_left\n0,0\n0.2,0.1\n0.2,0.2\n", r"bad\d\.csv:4: time 0.2 s is not after the previous row's 0.2 s"),
+    ("time_s,mentalis_left\n0,0\n0.1,abc\n", r"bad\d\.csv:3: column mentalis_left: 'abc' is not a number"),
+    ("time_s,mentalis_left\n0,0\n0.1\n", r"bad\d\.csv:3: 1 fields, the header \(line 1\) has 2"),
+    ("mentalis_left\n0\n", r"bad\d\.csv:1: no time_s column"),
     ("time_s,cranium_M00\n0,1\n", "the cranium needs all of its columns"),
+    ("time_s,mentalis_left,\n0,0,0\n", r"bad\d\.csv:1: column 3 has no name"),
 ]
 
 
 @pytest.mark.parametrize("text, message", BAD_CSV)
 def test_bad_animation_files_get_one_message_and_leave_nothing(builtin_model_path, shared_dir, text, message):
-    path = write_on_rank_0(shared_dir / "bad.csv", text)
+    path = write_on_rank_0(shared_dir / f"bad{BAD_CSV.index((text, message))}.csv", text)
     out = shared_dir / "never"
     with pytest.raises(SystemExit, match=message):
         main(["simulate", "--model", str(builtin_model_path), "--animation", str(path), "--out", str(out)])
@@ -216,7 +219,7 @@ BAD_TOML = [
 
 @pytest.mark.parametrize("text, message", BAD_TOML)
 def test_bad_keyframe_files(builtin_model_path, shared_dir, text, message):
-    path = write_on_rank_0(shared_dir / "bad.toml", text)
+    path = write_on_rank_0(shared_dir / f"bad{BAD_TOML.index((text, message))}.toml", text)
     out = shared_dir / "never"
     with pytest.raises(SystemExit, match=message):
         main(["simulate", "--model", str(builtin_model_path), "--animation", str(path), "--out", str(out)])
@@ -231,3 +234,72 @@ def test_what_is_not_an_animation(builtin_model_path, shared_dir):
         main(["simulate", *model, "--animation", str(shared_dir), "--out", str(shared_dir / "x")])
     with pytest.raises(SystemExit, match="--animation plays the animation alone"):
         main(["simulate", "smile", *model, "--animation", str(shared_dir / "smile.csv"), "--out", str(shared_dir / "x")])
+
+
+def test_the_example_animation_fits_the_built_in_face(model):
+    example = Animation.read(pathlib.Path(__file__).resolve().parents[1] / "examples" / "smile_and_nod.toml")
+    example.check(model)
+    assert example.n_frames == 31 and example.times[-1] == pytest.approx(2.0)
+    assert np.array_equal(example.activation("zygomaticus_major_left"),
+                          keyframe_curve([0.2, 0.9, 1.6], [0.0, 0.7, 0.1], example.times, "smooth"))
+    assert np.all(example.activation("mentalis_left") == 0)
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="kills a serial subprocess")
+def test_resume_after_kill_9_gives_the_same_bytes(builtin_model_path, tmp_path):
+    """A playback killed after its second frame and rerun: the same frames and tables as an
+    uninterrupted one."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    model = ["--model", str(builtin_model_path)]
+    animation = tmp_path / "keys.toml"
+    animation.write_text("frame_rate = 10\n[muscles.zygomaticus_major_left]\ntimes = [0, 1.1]\nvalues = [0, 0.9]\n"
+                         "[jaw]\ntimes = [0, 1.1]\nopening_deg = [0, 10]\n")
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    assert main(["simulate", *model, "--animation", str(animation), "--out", str(whole)]) == 0
+    repository = pathlib.Path(__file__).resolve().parents[1]
+    command = [sys.executable, str(repository / "run.py"), "simulate", *model, "--animation", str(animation),
+               "--out", str(killed)]
+    process = subprocess.Popen(command, cwd=repository, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                               env={**os.environ, "PYTHONPATH": str(repository)})
+    second_frame = killed / "frames" / "000001.json"
+    deadline = time.monotonic() + 120
+    while not second_frame.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert process.returncode == -signal.SIGKILL, "the playback ended before it could be killed"
+    assert (killed / "IN_PROGRESS").exists() and not (killed / "frames" / "000011.json").exists()
+    assert main(["simulate", *model, "--animation", str(animation), "--out", str(killed)]) == 0
+    names = [f"frames/{f:06d}.displacement.npy" for f in range(12)] + ["activations.csv", "kinematics.csv", "frames.csv"]
+    assert [name for name in names if (whole / name).read_bytes() != (killed / name).read_bytes()] == []
+
+
+def test_modified_newton_plays_the_same_frames(fitted, shared_dir):
+    """--reuse-factorization with a 1e-4 mm Newton tolerance: the frames of the default playback
+    to within that tolerance (measured on the 5K face: 1e-6 mm)."""
+    model, fit, played = fitted
+    out = shared_dir / "reused"
+    assert main(["simulate", *model, "--animation", str(fit), "--out", str(out), "--reuse-factorization",
+                 "--newton-tolerance", "1e-4"]) == 0
+    assert json.loads((out / "run.json").read_text())["reuse_factorization"] is True
+    for frame in range(4):
+        name = f"frames/{frame:06d}.displacement.npy"
+        assert np.abs(np.load(out / name) - np.load(played / name)).max() < 1e-4
+
+
+def test_pressure_on_a_model_without_an_oral_surface(model, shared_dir):
+    """An animation that presses the mouth, played on a model with no 'oral' surface: one message
+    naming the file, before the results folder exists."""
+    import dataclasses
+    from face_dolfinx.cli.main import parse_arguments, simulate_animation
+    path = write_on_rank_0(shared_dir / "puff.csv", "time_s,buccinator_left,intraoral_pressure_kpa\n0,0,0\n0.1,0.2,0.4\n")
+    out = shared_dir / "never_puffed"
+    args, _ = parse_arguments(["simulate", "--animation", str(path), "--out", str(out)])
+    without_oral = dataclasses.replace(model, boundary_ids={k: v for k, v in model.boundary_ids.items() if k != "oral"})
+    with pytest.raises(SystemExit, match=r"puff\.csv: .*no facets tagged 'oral'"):
+        simulate_animation(without_oral, args)
+    assert not out.exists()

@@ -265,6 +265,7 @@ class Animation:
         if path.suffix.lower() != ".csv":
             raise AnimationError(f"{path}: animations are written as .csv tables")
         from face_dolfinx.files import atomic_write
+        path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write(path, self.csv_text())
         return path
 
@@ -342,6 +343,8 @@ def _read_csv(path: pathlib.Path) -> Animation:
     header = [name.strip() for name in header]
     if TIME not in header:
         raise AnimationError(f"{path}:{header_line}: no {TIME} column (the header names the columns)")
+    if not all(header):
+        raise AnimationError(f"{path}:{header_line}: column {header.index('') + 1} has no name")
     repeated = sorted({name for name in header if header.count(name) > 1})
     if repeated:
         raise AnimationError(f"{path}:{header_line}: columns named more than once: {', '.join(repeated)}")

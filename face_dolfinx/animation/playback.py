@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from face_dolfinx.files import atomic_write
 from face_dolfinx.fitting import FrameResult, MarkerSet
 from face_dolfinx.parallel import on_rank_0
 from face_dolfinx.physics.problem import FaceProblem
@@ -130,8 +131,8 @@ def open_playback(model, animation: Animation, out, *, markers: PlaybackMarkers 
     def prepare():
         folder, finished = FitFolder.prepare(out, settings, take, overwrite=overwrite)
         if not finished:
-            (folder.path / ANIMATION_FILE).write_text(text)
-            (folder.path / ALIGNMENT_FILE).write_text(alignment)
+            atomic_write(folder.path / ANIMATION_FILE, text)
+            atomic_write(folder.path / ALIGNMENT_FILE, alignment)
         return folder.path
     return FitFolder(on_rank_0(prepare, model.mesh.comm)), markers
 

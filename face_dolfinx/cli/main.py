@@ -4,11 +4,14 @@ Subcommands:
   build     generate the built-in face at a resolution and print the model folder; with --subject
             (a capture) or --surface (a scan), the face adapted to a subject
   simulate  equilibrium shapes for named expressions -> XDMF + PNG; with --object and --path, a
-            rigid object moved along a path against the face (docs/contact.md)
+            rigid object moved along a path against the face (docs/contact.md); with --animation,
+            an animation or fit played back into a results folder (docs/animation.md)
   synth     a synthetic take of known truth (markers with noise, outliers, gaps) -> TRC/CSV/C3D
   fit       a take -> activations, head and jaw motion per frame (resumable), tables and report;
             a capture of your own is aligned to the model first (--correspondence, or ICP)
   report    (re)build the plots, rendered frames and ParaView series of a fit folder
+  edit      edit a fit or animation in activation space (in-betweens, exaggeration, splices,
+            keyframes, smoothing) -> an animation CSV for simulate --animation
   demo      the README's main job: build the face, synthesise a take, fit it
   retarget  a fit's (or an animation's) activations, head and jaw motion carried onto another model:
             an animation file for simulate --animation (docs/retargeting.md)
@@ -194,10 +197,19 @@ def simulate_animation(model, args) -> None:
     animation, markers = animation_and_markers(args.animation)
     if args.stop_after is not None and args.stop_after < 1:
         raise SystemExit(f"--stop-after {args.stop_after}: give 1 or more")
+    animation.check(model)
+    start = time.perf_counter()
+    try:  # the model may lack what the animation needs (an 'oral' surface for its pressure)
+        problem = FaceProblem(model, degree=args.degree, intraoral_pressure=animation.has_pressure,
+                              newton_tolerance=args.newton_tolerance, reuse_factorization=args.reuse_factorization)
+    except ValueError as error:
+        raise SystemExit(f"face-dolfinx: error: {animation.source}: {error}") from None
+    setup = time.perf_counter() - start
     try:
         folder, markers = open_playback(model, animation, args.out, markers=markers, overwrite=args.overwrite,
                                         extra=dict(degree=args.degree, strength=args.strength,
-                                                   newton_tolerance=args.newton_tolerance))
+                                                   newton_tolerance=args.newton_tolerance,
+                                                   reuse_factorization=args.reuse_factorization))
     except FitFolderError as error:
         raise SystemExit(str(error)) from None
     if folder.finished:
@@ -205,12 +217,9 @@ def simulate_animation(model, args) -> None:
                  folder.path)
         return
     _setup_logging(folder.path, verbose=args.verbose)
-    start = time.perf_counter()
-    problem = FaceProblem(model, degree=args.degree, intraoral_pressure=animation.has_pressure,
-                          newton_tolerance=args.newton_tolerance)
     log.info("model %s: %d tets, %d muscles; animation %s: %d frames, %.3g s; set-up %.1f s", model.name,
              model.mesh.topology.index_map(3).size_global, problem.num_muscles, animation.source,
-             animation.n_frames, animation.times[-1] - animation.times[0], time.perf_counter() - start)
+             animation.n_frames, animation.times[-1] - animation.times[0], setup)
     run = play(problem, animation, folder, markers, stop_after=args.stop_after)
     if run.seconds:
         log.info("%d frames: Newton %d its per frame (median), %.2f s per frame (median)", len(run.frames),
@@ -267,6 +276,98 @@ def retarget_animation(args) -> None:
              len(muscles["mapped"]), len(muscles["dropped"]), len(muscles["held_at_rest"]),
              record["head"]["scale"], record["head"]["rms_mm"], len(record["head"]["points"]), out,
              record_path(out))
+
+
+def animation_source(text: str, model=None):
+    """An animation or pose named on the command line: ``PATH`` (a CSV or TOML file, a results
+    folder), ``PATH@T`` (its pose at T seconds), ``PATH#N`` (its frame N), or ``expression:NAME``
+    (the model's named expression; needs ``model``)."""
+    from face_dolfinx.animation import Animation, AnimationError
+    if text.startswith("expression:"):
+        if model is None:
+            raise AnimationError(f"{text}: an expression needs the model that defines it (give --model or --tets)")
+        return Animation.from_expression(model, text.partition(":")[2])
+    for mark in ("@", "#"):
+        path, found, where = text.rpartition(mark)
+        if found and path and not pathlib.Path(text).exists():
+            try:
+                value = float(where) if mark == "@" else int(where)
+            except ValueError:
+                raise AnimationError(f"{text}: give PATH{mark}{'SECONDS' if mark == '@' else 'FRAME'}") from None
+            animation = Animation.read(path)
+            if mark == "@":
+                return animation.at(value)
+            if not 0 <= value < animation.n_frames:
+                raise AnimationError(f"{text}: frame {value} of the {animation.n_frames} frames of {path}")
+            return animation.at(float(animation.times[value]))
+    return Animation.read(text)
+
+
+def splice_part(text: str):
+    """A splice part: ``PATH[@START:STOP][xSPEED]`` -> (animation, start, stop, speed)."""
+    from face_dolfinx.animation import Animation, AnimationError
+    path, found, spec = text.rpartition("@")
+    if not found or pathlib.Path(text).exists():
+        return Animation.read(text), None, None, 1.0
+    window, _, speed = spec.partition("x")
+    start, colon, stop = window.partition(":")
+    try:
+        if window and not colon:
+            raise ValueError
+        values = [float(v) if v.strip() else None for v in (start, stop)] + [float(speed) if speed else 1.0]
+    except ValueError:
+        raise AnimationError(f"{text}: give PATH@START:STOP (seconds, either may be left out), optionally "
+                             f"followed by xSPEED") from None
+    return (Animation.read(path), *values)
+
+
+def edit(args) -> None:
+    """``run.py edit OPERATION``: an edited animation (``face_dolfinx.animation.editing``) -> a
+    CSV that ``simulate --animation`` plays."""
+    from face_dolfinx.animation import editing
+    from face_dolfinx.model.folder import load_model
+    from face_dolfinx.model.anatomy import build_builtin_face
+    out = pathlib.Path(args.out)
+    if out.suffix.lower() != ".csv":
+        raise SystemExit(f"--out {out}: an edited animation is written as a .csv table")
+    if out.exists() and not args.overwrite:
+        raise SystemExit(f"{out} already exists; pass --overwrite to replace it")
+    model = None
+    if args.model or args.tets:
+        model = load_model(pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets),
+                           MPI.COMM_WORLD)
+    if args.operation == "between":
+        result = editing.between(animation_source(args.first, model), animation_source(args.second, model),
+                                 args.frames, args.duration)
+    elif args.operation == "scale":
+        about = animation_source(args.about, model) if args.about else None
+        result = editing.scaled(animation_source(args.source, model), args.factor, about)
+    elif args.operation == "splice":
+        parts = [editing.segment(animation, start, stop, speed, args.frame_rate)
+                 for animation, start, stop, speed in map(splice_part, args.parts)]
+        result = editing.splice(parts, args.transition)
+    elif args.operation == "keyframes":
+        times, values = keyframe_option(args.keys)
+        result = editing.with_keyframes(animation_source(args.source, model), args.muscle, times, values,
+                                        blend=args.blend, interpolation=args.interpolation)
+    else:
+        result = editing.smoothed(animation_source(args.source, model), args.time_constant, args.method)
+    if model is not None:
+        result.check(model)
+    on_rank_0(lambda: result.write(out), MPI.COMM_WORLD)
+    log.info("%s: %d frames, %.3g s, %d muscles named (from %s)", out, result.n_frames,
+             result.times[-1] - result.times[0], len(result.muscle_names), result.source)
+
+
+def keyframe_option(text: str) -> tuple[list[float], list[float]]:
+    """``--keys T=V,T=V,...`` -> (times, values)."""
+    pairs = [item.partition("=") for item in filter(None, (p.strip() for p in text.split(",")))]
+    try:
+        if not pairs or any(not sep for _, sep, _ in pairs):
+            raise ValueError
+        return [float(t) for t, _, _ in pairs], [float(v) for _, _, v in pairs]
+    except ValueError:
+        raise SystemExit(f"--keys {text}: give TIME=ACTIVATION pairs, comma-separated, e.g. 0.5=0.8,1.2=0") from None
 
 
 def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -> list[dict]:
@@ -628,6 +729,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--newton-tolerance", type=float, default=1e-8, metavar="MM",
                    help="with --animation: Newton stops once a correction moves no node further than this "
                         "(default 1e-8 mm)")
+    p.add_argument("--reuse-factorization", action="store_true",
+                   help="with --animation: modified Newton, keeping the last MUMPS factor across iterations "
+                        "and frames while each iteration cuts the residual 4-fold (faster; a resumed run then "
+                        "matches an uninterrupted one to solver tolerance, not bit for bit)")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     p = sub.add_parser("retarget", help="carry a fit's or an animation's motion onto another model",
@@ -640,6 +745,53 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                                           "folder names in its run.json)")
     p.add_argument("--out", help="the animation file to write (.csv)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing animation file")
+
+    p = sub.add_parser("edit", help="edit an animation or fit in activation space -> an animation CSV",
+                       description="Edits of fitted or written animations, each control on its own space "
+                                   "(docs/animation.md): in-betweens of two poses, exaggeration about neutral, "
+                                   "splicing and retiming, keyframes of one muscle, smoothing. SOURCE is a "
+                                   "CSV or TOML animation or a fit or simulation folder; a POSE is SOURCE@SECONDS, "
+                                   "SOURCE#FRAME or expression:NAME. The result is a CSV for simulate --animation.")
+    operations = p.add_subparsers(dest="operation", required=True)
+
+    def edit_options(q):
+        q.add_argument("--out", required=True, help="the edited animation (.csv)")
+        q.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+        q.add_argument("--model", help="model folder: for expression:NAME poses, and to check the result against")
+        q.add_argument("--tets", type=int, help="the built-in face at this resolution, as --model")
+
+    q = operations.add_parser("between", help="in-betweens of two poses (sifakis2005 figure 10)")
+    q.add_argument("first", metavar="POSE")
+    q.add_argument("second", metavar="POSE")
+    q.add_argument("--frames", type=int, default=11, help="poses from the first to the second, both included")
+    q.add_argument("--duration", type=float, default=1.0, help="seconds from the first pose to the second")
+    edit_options(q)
+    q = operations.add_parser("scale", help="exaggerate or tone down activations, clamped to [0, 1]")
+    q.add_argument("source", metavar="SOURCE")
+    q.add_argument("--factor", type=float, required=True, help="> 1 exaggerates, < 1 tones down")
+    q.add_argument("--about", metavar="POSE", help="scale about this pose's activations (default: neutral, 0)")
+    edit_options(q)
+    q = operations.add_parser("splice", help="segments of animations one after another, retimed")
+    q.add_argument("parts", nargs="+", metavar="SOURCE[@START:STOP][xSPEED]",
+                   help="a time range of a source (seconds of its own clock), played SPEED times as fast")
+    q.add_argument("--transition", type=float, metavar="S",
+                   help="seconds of in-betweens across each seam (default: one frame)")
+    q.add_argument("--frame-rate", type=float, metavar="HZ", help="resample every part at this rate")
+    edit_options(q)
+    q = operations.add_parser("keyframes", help="keyframes of one muscle on top of an animation")
+    q.add_argument("source", metavar="SOURCE")
+    q.add_argument("--muscle", required=True)
+    q.add_argument("--keys", required=True, metavar="T=A,...", help="activation A at time T (s), comma-separated")
+    q.add_argument("--blend", type=float, default=0.1, metavar="S",
+                   help="seconds over which the keys blend in before the first and out after the last (0.1)")
+    q.add_argument("--interpolation", choices=("smooth", "linear"), default="smooth")
+    edit_options(q)
+    q = operations.add_parser("smooth", help="smooth the curves in time, clamped")
+    q.add_argument("source", metavar="SOURCE")
+    q.add_argument("--time-constant", type=float, required=True, metavar="S",
+                   help="the Gaussian's standard deviation (s); Savitzky-Golay's window is +- 2 of them")
+    q.add_argument("--method", choices=("gaussian", "savgol"), default="gaussian")
+    edit_options(q)
 
     p = sub.add_parser("demo", help="the main job: build the face, synthesise a take, fit it",
                        description=demo.__doc__)
@@ -838,6 +990,9 @@ def _main(argv=None) -> int:
         return 0
     if args.command == "demo":
         return demo(args)
+    if args.command == "edit":
+        edit(args)
+        return 0
 
     model = _model_from_args(args)
     if args.command == "synth":
