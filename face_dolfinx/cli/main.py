@@ -13,6 +13,8 @@ Subcommands:
   edit      edit a fit or animation in activation space (in-betweens, exaggeration, splices,
             keyframes, smoothing) -> an animation CSV for simulate --animation
   demo      the README's main job: build the face, synthesise a take, fit it
+  retarget  a fit's (or an animation's) activations, head and jaw motion carried onto another model:
+            an animation file for simulate --animation (docs/retargeting.md)
 Every subcommand takes --config FILE.toml (docs/cli.md).
 """
 import argparse
@@ -228,6 +230,52 @@ def simulate_animation(model, args) -> None:
         return
     log.info("results: %s (plots: *.png and renders/; ParaView: face.xdmf; run.py video %s)",
              folder.path.resolve(), folder.path)
+
+
+def retarget_animation(args) -> None:
+    """Carry an animation (a fit or simulation results folder, a CSV or TOML file) onto another
+    model: an animation file that ``simulate --animation`` plays, and the record of what was
+    mapped, dropped and clamped beside it (``face_dolfinx.animation.retarget``). Runs on rank 0."""
+    from face_dolfinx.animation import Animation
+    from face_dolfinx.animation.retarget import (RetargetError, record_path, retarget, source_model_path,
+                                                 write_record)
+    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.model.folder import read_model_arrays
+    if not args.animation or not args.out:
+        raise SystemExit("retarget: give the fit folder or animation file and --out FILE.csv")
+    out = pathlib.Path(args.out)
+    # Every input is checked before anything is written: a bad input leaves nothing behind.
+    if out.suffix.lower() != ".csv":
+        raise SystemExit(f"--out {out}: an animation is written as a .csv table")
+    if not args.overwrite and (out.exists() or record_path(out).exists()):
+        raise SystemExit(f"--out {out} exists; pass --overwrite to replace it")
+    source_path = pathlib.Path(args.source_model) if args.source_model else source_model_path(args.animation)
+    if source_path is None:
+        raise SystemExit(f"{args.animation}: an animation file does not name the model it was made for; "
+                         f"give --source-model FOLDER")
+    target_path = pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets)
+
+    def carry():
+        animation = Animation.read(args.animation)
+        source = read_model_arrays(source_path, check=False)
+        target = read_model_arrays(target_path, check=False)
+        moved, record = retarget(animation, source, target, target_label=str(target_path))
+        record["source_model"] = str(source_path)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        moved.write(out)
+        write_record(out, record)
+        return record
+
+    try:
+        record = on_rank_0(carry, MPI.COMM_WORLD)
+    except RetargetError as error:
+        raise SystemExit(f"face-dolfinx: error: {error}") from None
+    muscles = record["muscles"]
+    log.info("retargeted %d frames onto %s: %d muscles mapped, %d dropped, %d held at rest; head scale %.4g "
+             "(RMS %.3g mm over %d points); animation %s, record %s", record["frames"], target_path,
+             len(muscles["mapped"]), len(muscles["dropped"]), len(muscles["held_at_rest"]),
+             record["head"]["scale"], record["head"]["rms_mm"], len(record["head"]["points"]), out,
+             record_path(out))
 
 
 def animation_source(text: str, model=None):
@@ -687,6 +735,17 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "matches an uninterrupted one to solver tolerance, not bit for bit)")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
+    p = sub.add_parser("retarget", help="carry a fit's or an animation's motion onto another model",
+                       description=retarget_animation.__doc__)
+    p.add_argument("animation", nargs="?",
+                   help="a fit or simulation results folder, or an animation file (CSV, TOML)")
+    p.add_argument("--model", help="the target model folder (default: the built-in face at --tets)")
+    p.add_argument("--tets", type=int, default=20_000, help="built-in face resolution")
+    p.add_argument("--source-model", help="the model the animation was made for (default: the one a results "
+                                          "folder names in its run.json)")
+    p.add_argument("--out", help="the animation file to write (.csv)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing animation file")
+
     p = sub.add_parser("edit", help="edit an animation or fit in activation space -> an animation CSV",
                        description="Edits of fitted or written animations, each control on its own space "
                                    "(docs/animation.md): in-betweens of two poses, exaggeration about neutral, "
@@ -925,6 +984,9 @@ def _main(argv=None) -> int:
         except (FileNotFoundError, ValueError) as error:
             raise SystemExit(f"face-dolfinx video: error: {error}") from None
         log.info("video: %s", written)
+        return 0
+    if args.command == "retarget":
+        retarget_animation(args)
         return 0
     if args.command == "demo":
         return demo(args)
