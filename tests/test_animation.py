@@ -10,6 +10,7 @@ from mpi4py import MPI
 from face_dolfinx.animation import Animation, AnimationError, keyframe_curve
 from face_dolfinx.cli.main import main
 from face_dolfinx.model.bones import AffineMap, jaw_pose, rotation, tmj_upper_limits
+from killed_run import kill_after_frame
 
 NEWTON_TOLERANCE = 1e-8  # mm, the default step tolerance of fit and simulate
 
@@ -249,29 +250,13 @@ def test_the_example_animation_fits_the_built_in_face(model):
 def test_resume_after_kill_9_gives_the_same_bytes(builtin_model_path, tmp_path):
     """A playback killed after its second frame and rerun: the same frames and tables as an
     uninterrupted one."""
-    import os
-    import signal
-    import subprocess
-    import sys
-    import time
     model = ["--model", str(builtin_model_path)]
     animation = tmp_path / "keys.toml"
     animation.write_text("frame_rate = 10\n[muscles.zygomaticus_major_left]\ntimes = [0, 1.1]\nvalues = [0, 0.9]\n"
                          "[jaw]\ntimes = [0, 1.1]\nopening_deg = [0, 10]\n")
     whole, killed = tmp_path / "whole", tmp_path / "killed"
     assert main(["simulate", *model, "--animation", str(animation), "--out", str(whole)]) == 0
-    repository = pathlib.Path(__file__).resolve().parents[1]
-    command = [sys.executable, str(repository / "run.py"), "simulate", *model, "--animation", str(animation),
-               "--out", str(killed)]
-    process = subprocess.Popen(command, cwd=repository, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                               env={**os.environ, "PYTHONPATH": str(repository)})
-    second_frame = killed / "frames" / "000001.json"
-    deadline = time.monotonic() + 120
-    while not second_frame.exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
-    assert process.returncode == -signal.SIGKILL, "the playback ended before it could be killed"
+    kill_after_frame(["simulate", *model, "--animation", str(animation), "--out", str(killed)], killed, 1)
     assert (killed / "IN_PROGRESS").exists() and not (killed / "frames" / "000011.json").exists()
     assert main(["simulate", *model, "--animation", str(animation), "--out", str(killed)]) == 0
     names = [f"frames/{f:06d}.displacement.npy" for f in range(12)] + ["activations.csv", "kinematics.csv", "frames.csv"]

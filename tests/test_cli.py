@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from face_dolfinx.cli.main import main
+from killed_run import kill_after_frame
 
 RED, GREEN = (1.0, 0.0, 0.0), (0.196, 0.804, 0.196)  # render markers: captured, simulated (limegreen)
 LINE_COLOURS = [(0.122, 0.467, 0.706), (1.0, 0.498, 0.055), (0.173, 0.627, 0.173)]  # matplotlib C0-C2
@@ -172,24 +173,9 @@ def test_resume_after_stop_is_bit_identical(fitted_take, shared_tmp, capsys):
 
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="kills a serial subprocess")
 def test_resume_after_kill_9_is_bit_identical(fitted_take, tmp_path):
-    import os
-    import signal
-    import subprocess
-    import sys
-    import time
     take, model, uninterrupted = fitted_take
     out = tmp_path / "killed"
-    repository = pathlib.Path(__file__).resolve().parents[1]
-    command = [sys.executable, str(repository / "run.py"), "fit", str(take), *model, "--out", str(out)]
-    process = subprocess.Popen(command, cwd=repository, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                               env={**os.environ, "PYTHONPATH": str(repository)})
-    second_frame = out / "frames" / "000001.json"
-    deadline = time.monotonic() + 120
-    while not second_frame.exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
-    assert process.returncode == -signal.SIGKILL, "the fit ended before it could be killed"
+    kill_after_frame(["fit", str(take), *model, "--out", str(out)], out, 1)
     assert (out / "IN_PROGRESS").exists() and not (out / "frames" / "000003.json").exists()
     assert main(["fit", str(take), *model, "--out", str(out)]) == 0
     assert _same_files(uninterrupted, out) == []
