@@ -175,7 +175,8 @@ class LipContact:
         """Lip node indices (every rank) of the local blocks ``blocks`` of any rank."""
         mine = np.zeros(self.surface.num_nodes)
         mine[self.surface.local_nodes[np.isin(self.surface.local_blocks, blocks)]] = 1.0
-        return np.flatnonzero(self.comm.allreduce(mine, op=MPI.MAX) > 0.0)
+        self.comm.Allreduce(MPI.IN_PLACE, mine, op=MPI.MAX)
+        return np.flatnonzero(mine > 0.0)
 
     # -- geometry ----------------------------------------------------------------------------
     def positions(self, displacement: np.ndarray) -> np.ndarray:
