@@ -17,6 +17,7 @@ import time
 
 from mpi4py import MPI
 import numpy as np
+from dolfinx import fem
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from provenance import record  # noqa: E402
@@ -33,8 +34,12 @@ def run(model, angle: float, settings: LipContactSettings | None) -> tuple[dict,
                                       problem.bone_blocks)
     distances, depths = [], []
 
+    iterate, owned = fem.Function(problem.V), problem.u.vector.getLocalSize()
+
     def monitor(snes, iteration, norm):
-        x = snes.getSolution().array_r
+        iterate.x.array[:owned] = snes.getSolution().array_r  # with its ghosts, for the cells' corners
+        iterate.x.scatter_forward()
+        x = iterate.x.array
         distances.append(lips.min_distance(x))
         depths.append(lips.penetration(x))
 

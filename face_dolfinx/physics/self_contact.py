@@ -218,7 +218,7 @@ class LipContact:
         """Deepest lip node inside the flesh of the other lip (mm, 0 if none; every rank): a node
         inside a cell it is no vertex of, by its distance to the other lip's surface. (A lip that
         passes a slit's width through the other leaves the surfaces disjoint again, so the test
-        is by the cells.) The owned part of ``displacement`` and its ghosts are read."""
+        is by the cells.) ``displacement``: a local dof array with its ghosts."""
         x = self.positions(displacement)
         corners = self._cell_rest + displacement.reshape(-1, 3)[self._cell_blocks]
         deepest = 0.0
