@@ -58,11 +58,12 @@ LIP_LANDMARKS = ("mouth_corner_left", "mouth_corner_right", "upper_lip_center", 
 
 @dataclass
 class LipContactSettings:
-    """The lips' barrier: activation distance ``dhat`` (mm), ``stiffness`` (the barrier's scale:
-    a stiffer barrier holds the lips further apart under the same pressure), how far from the mouth-corner segment a facet of the slit may lie
-    (``depth``, mm), how steeply it must face the other lip (``facing``: cosine of the angle
-    between its normal and the lower-to-upper lip direction), and ``pattern_radius`` (mm): lip
-    node pairs this close at rest get room in the tangent's sparsity."""
+    """The lips' barrier: activation distance ``dhat`` (mm) and ``stiffness`` (the barrier's
+    scale: a stiffer barrier holds the lips further apart under the same pressure); how far from
+    the mouth-corner segment a facet of the slit may lie (``depth``, mm) and how squarely it must
+    face the other lip (``facing``: cosine of the angle between its normal and the direction
+    between the lips); ``pattern_radius`` (mm): lip node pairs this close at rest get room in the
+    tangent's sparsity (docs/contact.md)."""
 
     dhat: float = 0.05
     stiffness: float = 10.0
@@ -91,9 +92,7 @@ def lip_facets(model, settings: LipContactSettings) -> tuple[np.ndarray, np.ndar
     x = mesh.geometry.x
     # Geometry nodes of the vertices (P1 geometry: the same numbering only by chance, so mapped).
     vertex_node = np.empty(mesh.topology.index_map(0).size_local + mesh.topology.index_map(0).num_ghosts, dtype=np.int64)
-    geometry = mesh.geometry.dofmap
-    for cell in range(mesh.topology.index_map(tdim).size_local + mesh.topology.index_map(tdim).num_ghosts):
-        vertex_node[cell_vertices.links(cell)] = geometry.links(cell)[:4]
+    vertex_node[cell_vertices.array.reshape(-1, 4)] = mesh.geometry.dofmap.array.reshape(len(cell_vertices), -1)[:, :4]
     landmarks = model.landmarks
     left, right = (np.asarray(landmarks[k], dtype=float) for k in LIP_LANDMARKS[:2])
     up = np.asarray(landmarks["upper_lip_center"], dtype=float) - np.asarray(landmarks["lower_lip_center"], dtype=float)
