@@ -410,7 +410,9 @@ class QuasistaticSolver:
     ``add_hessian(x, A, constrained)`` (A assembled; ``constrained``: the owned local Dirichlet dofs,
     whose rows and columns it leaves alone) and ``step_fraction(x, step, largest)`` (the largest t in
     (0, 1] such that x - s t largest step stays admissible for s in [0, 1]); x is the unknown's PETSc
-    vector, all collective.
+    vector, all collective. A term whose Hessian couples nodes that share no element also has
+    ``coupled_blocks()``, (k, 2) global node pairs: the tangent is built with room for them
+    (``widened_tangent``).
     """
 
     def __init__(self, residual: ufl.Form, unknown: fem.Function, bcs: list, *, tangent: str,
