@@ -44,9 +44,9 @@ from face_dolfinx.physics.contact import ContactSurface
 # (1 - CCD_KEEP) of their smallest distance now (IPC's conservative rescaling).
 CCD_KEEP = 0.8
 
-# The narrow phase of the step bound: additive CCD (Li et al. 2021) took 4.6 ms per Newton step on
-# the 5K face's lips against 630 ms for ipctk's default tight-inclusion CCD with a minimum distance
-# (orbicularis oris at 1, 72 lip nodes).
+# The narrow phase of the step bound: additive CCD (Li et al. 2021), some thousand times faster than
+# ipctk's default tight-inclusion CCD with a minimum distance on the 5K face's pressed lips, for
+# the same step fractions (benchmarks/lip_ccd.py, docs/contact.md).
 NARROW_PHASE = ipctk.AdditiveCCD()
 
 # Newton iterations a solve with lip contact may take before continuation takes over.
