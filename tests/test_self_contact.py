@@ -237,3 +237,14 @@ def test_fit_of_pressed_lips_with_contact(model):
     assert error < 0.05
     assert problem.lips.penetration(problem.u.x.array) == 0.0
     assert problem.lips.min_distance(problem.u.x.array) > 0.0
+
+
+def test_tracking_with_contact_builds_the_lips_into_its_problem(model):
+    """``fit --contact``: the tracking setting reaches the problem and the run's record."""
+    from face_dolfinx.cli.main import parse_arguments, tracking_settings
+    from face_dolfinx.tracking import Tracker
+    settings = tracking_settings(parse_arguments(["fit", "take.trc", "--contact"])[0])
+    assert settings.lip_contact and settings.record()["contact"] is True
+    problem = Tracker(model, settings).problem
+    assert problem.lips is not None and problem.lips.settings.where == "--contact"
+    assert problem.solver.energy_terms == (problem.lips,)
