@@ -15,7 +15,7 @@ OTHER_VALUES = dict(mode=("paper", "paper"), gn_steps=("5", 5), smoothness=("0.5
                     intraoral_pressure=(None, True), pressure_limit=("50", 50.0),
                     fresh_jacobians=("2", 2), approximate_jacobians=("0.1", 0.1),
                     reuse_factorization=(None, True), newton_tolerance=("1e-3", 1e-3),
-                    refresh_contraction=("0.3", 0.3), line_search_iterations=("2", 2))
+                    refresh_contraction=("0.3", 0.3), line_search_iterations=("2", 2), contact=(None, True))
 
 
 def test_every_setting_is_a_fit_option_of_the_same_name():
@@ -38,7 +38,7 @@ def test_default_preset_is_the_library_default_and_fast_differs_where_documented
                        "newton_tolerance", "refresh_contraction", "line_search_iterations"}
     assert fast.problem_options() == dict(reuse_factorization=True, refresh_contraction=0.5,
                                           newton_tolerance=1e-2, line_search_iterations=3,
-                                          intraoral_pressure=False)
+                                          intraoral_pressure=False, lip_contact=None)
 
 
 def test_updated_keeps_what_is_none_and_leaves_the_preset_alone():

@@ -18,7 +18,7 @@ import numpy as np
 from face_dolfinx.model.bones import AffineMap, jaw_pose, rigid_map, rotation
 from face_dolfinx.capture import Capture
 
-SCENARIOS = ("smile", "jaw", "brow", "speech", "mixed", "training")
+SCENARIOS = ("smile", "jaw", "brow", "speech", "mixed", "training", "bilabial")
 
 
 @dataclass
@@ -84,6 +84,17 @@ def control_curves(model, scenario: str, n_frames: int, head_motion: bool = True
             drive("brow_raise", _smooth_pulse(t, 0.5, 0.7, 0.95))
     elif scenario == "training":
         _training_curves(model, n_frames, activations, tmj, drive)
+    elif scenario == "bilabial":
+        # "ma ba pa": three lip closures (the orbicularis oris at 0.9 presses the lips together,
+        # the jaw closed), each followed by an open vowel (jaw opening, lower lip drawn down).
+        closures = sum(_smooth_pulse(t, peak - 0.1, peak, peak + 0.1) for peak in (0.15, 0.45, 0.75))
+        vowels = sum(_smooth_pulse(t, peak - 0.1, peak, peak + 0.1) for peak in (0.3, 0.6, 0.9))
+        for i, name in enumerate(names):
+            if name.startswith("orbicularis_oris"):
+                activations[:, i] = 0.9 * closures
+            elif name.startswith("depressor_labii_inferioris"):
+                activations[:, i] = 0.4 * vowels
+        tmj[:, 0] = 0.3 * max_opening * vowels
     activations = np.clip(activations, 0.0, 1.0)
 
     head = []

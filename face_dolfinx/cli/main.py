@@ -431,6 +431,12 @@ def _object_from_args(args):
     return ContactSettings((Sphere(radius),), (poses[0],), where=f"{args.path} (its first pose)"), poses
 
 
+def _lip_contact(args):
+    """The lip self-contact settings of ``--contact`` (None without it)."""
+    from face_dolfinx.physics.self_contact import LipContactSettings
+    return LipContactSettings(where="--contact") if args.contact else None
+
+
 def synth(model, args) -> None:
     """Solve the face along a scenario, sample its marker sites, write capture + truth."""
     from face_dolfinx.capture import write_capture
@@ -444,7 +450,7 @@ def synth(model, args) -> None:
     if args.first_frame < 0 or args.first_frame + args.frames > take_frames:
         raise SystemExit(f"--first-frame {args.first_frame} + --frames {args.frames} runs past the "
                          f"{take_frames}-frame take (--take-frames)")
-    problem = FaceProblem(model)
+    problem = FaceProblem(model, lip_contact=_lip_contact(args))
     names = list(model.markers)
     markers = MarkerSet(problem, np.array([model.markers[n] for n in names]), names=names)
     capture, truth = synthesize_take(
@@ -830,8 +836,11 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p = sub.add_parser("synth", help="synthetic take with known truth")
     model_options(p, "takes/speech.trc")
     p.add_argument("--scenario", default="speech",
-                   help="smile, jaw, brow, speech, mixed or training (Choe & Ko's: each muscle alone, "
-                        "jaw limits, expressions; give frames = a multiple of the segment count)")
+                   help="smile, jaw, brow, speech, mixed, training (Choe & Ko's: each muscle alone, "
+                        "jaw limits, expressions; give frames = a multiple of the segment count) or bilabial "
+                        "(ma ba pa: lips pressed together three times; with --contact)")
+    p.add_argument("--contact", action="store_true",
+                   help="lip self-contact in the truth's solves (docs/contact.md)")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--take-frames", type=int,
                    help="write only --frames frames of a take this long (the scenario's motion spans the "
@@ -905,6 +914,9 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--line-search-iterations", type=int, metavar="N",
                    help="secant iterations of Newton's line search (default 1; 3 cut the slowest "
                         "frames at 404K tets, where the lips move fast, from 94 to 21 s)")
+    p.add_argument("--contact", action="store_true", default=None,
+                   help="lip self-contact: the upper and lower lip press on each other instead of passing "
+                        "through (equilibrium and sensitivities include it; docs/contact.md)")
     p.add_argument("--approximate-jacobians", type=float, metavar="MM",
                    help="a Jacobian may use the last factor of the equilibrium solve if it was made at "
                         "a state this close to the equilibrium, instead of a new factorisation "

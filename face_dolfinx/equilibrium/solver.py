@@ -192,6 +192,35 @@ class InversionGuard:
         return fraction
 
 
+def widened_tangent(A: PETSc.Mat, form: fem.FormMetaClass, pairs: np.ndarray) -> PETSc.Mat:
+    """A matrix like ``A`` (the form's tangent, not yet assembled: same layout and local-to-global
+    map) whose sparsity also holds the 3 x 3 blocks of ``pairs``, (k, 2) global node (block)
+    indices; this rank keeps the pairs whose first node it owns. Entries outside it are still
+    accepted (a new nonzero; the factorisation then analyses the changed pattern again)."""
+    fem_petsc.assemble_matrix(A, form)
+    A.assemble()
+    indptr, indices, _ = A.getValuesCSR()
+    first, last = A.getOwnershipRange()
+    bs = A.getBlockSize()
+    rows = np.repeat(np.arange(first, last), np.diff(indptr))
+    mine = pairs[(pairs[:, 0] >= first // bs) & (pairs[:, 0] < last // bs)]
+    component = np.arange(bs)
+    extra_rows = (bs * mine[:, :1, None] + component[None, None, :]).repeat(bs, axis=1).reshape(-1)
+    extra_columns = (bs * mine[:, 1:, None] + component[None, None, :]).repeat(bs, axis=2).reshape(-1)
+    entries = np.unique(np.column_stack([np.concatenate([rows, extra_rows]),
+                                         np.concatenate([indices, extra_columns])]), axis=0)
+    counts = np.bincount(entries[:, 0] - first, minlength=last - first)
+    widened = PETSc.Mat().create(comm=A.getComm())
+    widened.setSizes(A.getSizes(), bsize=bs)
+    widened.setType(A.getType())
+    widened.setPreallocationCSR((np.concatenate([[0], np.cumsum(counts)]).astype(PETSc.IntType),
+                                 entries[:, 1].astype(PETSc.IntType)))
+    widened.setLGMap(*A.getLGMap())
+    widened.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+    A.destroy()
+    return widened
+
+
 def _signed_volumes(points: np.ndarray) -> np.ndarray:
     """Six times the signed volume of tetrahedra given as (cells, 4, 3) vertex positions (the
     triple product written out: at 200K cells 17 ms, np.cross with einsum 20-23 ms, a batched
@@ -381,7 +410,9 @@ class QuasistaticSolver:
     ``add_hessian(x, A, constrained)`` (A assembled; ``constrained``: the owned local Dirichlet dofs,
     whose rows and columns it leaves alone) and ``step_fraction(x, step, largest)`` (the largest t in
     (0, 1] such that x - s t largest step stays admissible for s in [0, 1]); x is the unknown's PETSc
-    vector, all collective.
+    vector, all collective. A term whose Hessian couples nodes that share no element also has
+    ``coupled_blocks()``, (k, 2) global node pairs: the tangent is built with room for them
+    (``widened_tangent``).
     """
 
     def __init__(self, residual: ufl.Form, unknown: fem.Function, bcs: list, *, tangent: str,
@@ -419,6 +450,9 @@ class QuasistaticSolver:
         self._residual_work = self._residual_vector.duplicate()
         self.tangent_structure = tangent
         self.tangent = fem_petsc.create_matrix(self.jacobian_form)
+        coupled = [term.coupled_blocks() for term in self.energy_terms if hasattr(term, "coupled_blocks")]
+        if coupled:
+            self.tangent = widened_tangent(self.tangent, self.jacobian_form, np.concatenate(coupled))
         if tangent != "general":
             self.tangent.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         # "spd" makes MUMPS factorise without numerical pivoting (SYM = 1): 4.4-5.0 s instead of

@@ -41,6 +41,7 @@ from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
 from face_dolfinx.physics.contact import ContactPotential, ContactSettings
+from face_dolfinx.physics.self_contact import LIP_NEWTON_ITERATIONS, LipContact, LipContactSettings, lip_facets
 from face_dolfinx.physics.material import FaceMaterial, FiberSlot
 
 log = logging.getLogger(__name__)
@@ -175,6 +176,8 @@ class FaceProblem:
         facets tagged ``oral``.
     contact : ``ContactSettings``: rigid objects pressing on the model's facets tagged
         ``contact.surface`` (module docstring, docs/contact.md); their poses join the controls.
+    lip_contact : ``LipContactSettings``: the upper and lower lip press on each other instead of
+        passing through (``face_dolfinx.physics.self_contact``, docs/contact.md).
     """
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
@@ -182,7 +185,7 @@ class FaceProblem:
                  krylov_on_old_factor: bool = False, newton_tolerance: float = 1e-8,
                  refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True,
                  line_search_iterations: int = 1, intraoral_pressure: bool = False,
-                 contact: ContactSettings | None = None):
+                 contact: ContactSettings | None = None, lip_contact: LipContactSettings | None = None):
         if line_search_iterations < 1:
             raise ValueError(f"line_search_iterations = {line_search_iterations}: give 1 or more")
         self.model = model
@@ -241,16 +244,23 @@ class FaceProblem:
             self.contact = ContactPotential(self.V, model.facet_tags.find(tag), contact)
         if self.contact is not None:
             self.contact.check_clear(self.u.x.array)
+        self.lips = None
+        if lip_contact is not None:
+            self.lips = LipContact(self.V, *lip_facets(model, lip_contact), lip_contact, self.bone_blocks)
+        energy_terms = tuple(term for term in (self.contact, self.lips) if term is not None)
+        # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
+        # closed by the orbicularis oris at 1): Newton is given room before continuation.
+        lip_newton = {"snes_max_it": LIP_NEWTON_ITERATIONS} if self.lips is not None else {}
         self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent="general" if intraoral_pressure else "spd",
                                         energy=energy,
                                         petsc_options={"snes_linesearch_max_it": line_search_iterations,
-                                                       **general, **(petsc_options or {})},
+                                                       **general, **lip_newton, **(petsc_options or {})},
                                         inversion_guard=InversionGuard(self.V) if inversion_guard else None,
                                         reuse_policy=FactorReusePolicy(across_solves=reuse_factorization,
                                                                        refresh_contraction=refresh_contraction),
                                         krylov_on_old_factor=krylov_on_old_factor,
                                         step_tolerance=newton_tolerance, keep_packed_coefficients=True,
-                                        energy_terms=(self.contact,) if self.contact is not None else ())
+                                        energy_terms=energy_terms)
         self.controls = self.rest_controls()
         self.set_controls(self.controls)
 
@@ -383,6 +393,8 @@ class FaceProblem:
             equilibrium = self.u.x.array.copy()
             # A long linear prediction can invert elements: pull it back towards the equilibrium.
             fraction = self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - guess)
+            if self.lips is not None:  # ... or let the lips pass through each other
+                fraction *= self.lips.admissible_fraction(equilibrium, equilibrium + fraction * (guess - equilibrium))
             self.u.x.array[:] = equilibrium + fraction * (guess - equilibrium)
             held = self._clear_objects(target.objects)
             self.set_controls(target)

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, fields, replace
 
 from face_dolfinx.equilibrium.solver import REFRESH_CONTRACTION
 from face_dolfinx.fitting import FitSettings
+from face_dolfinx.physics.self_contact import LipContactSettings
 
 # record key (= fit option) -> (where it lives, field name): "fit" in FitSettings, "solver" here.
 RECORD_FIELDS = {
@@ -36,6 +37,7 @@ RECORD_FIELDS = {
     "newton_tolerance": ("solver", "newton_tolerance"),
     "refresh_contraction": ("solver", "refresh_contraction"),
     "line_search_iterations": ("solver", "line_search_iterations"),
+    "contact": ("solver", "lip_contact"),
 }
 
 
@@ -55,6 +57,7 @@ class TrackingSettings:
     refresh_contraction: float = REFRESH_CONTRACTION
     newton_tolerance: float = 1e-8  # mm: Newton stops once no node moves further in a correction
     line_search_iterations: int = 1
+    lip_contact: bool = False  # the lips press on each other instead of passing (physics/self_contact.py)
 
     def __post_init__(self):
         checks = (
@@ -95,8 +98,9 @@ class TrackingSettings:
 
     def problem_options(self) -> dict:
         """The ``FaceProblem`` keywords (the pressure control is a control of the problem too)."""
-        return {**{f.name: getattr(self, f.name) for f in fields(self) if f.name != "fit"},
-                "intraoral_pressure": self.fit.fit_pressure}
+        return {**{f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("fit", "lip_contact")},
+                "intraoral_pressure": self.fit.fit_pressure,
+                "lip_contact": LipContactSettings(where="--contact") if self.lip_contact else None}
 
 
 PRESETS = {

@@ -1,0 +1,305 @@
+"""Frictionless self-contact of the lips: upper lip against lower lip (IPC barrier, IPC Toolkit).
+
+The lip surfaces are the skin facets that line the mouth slit: those near the segment between the
+mouth corners whose outward normal faces the other lip (``lip_facets``; a model designates them by
+its ``skin`` tag and the landmarks ``mouth_corner_left``, ``mouth_corner_right``,
+``upper_lip_center`` and ``lower_lip_center``, docs/model_format.md). Their nodes and flat
+triangles (``contact.ContactSurface``, gathered on every rank in rest-coordinate order) form one
+``ipctk.CollisionMesh``. Every point-triangle and edge-edge pair of it closer than ``dhat`` (and not
+sharing a vertex) carries the IPC barrier (Li et al. 2020), zero beyond dhat and unbounded as the
+distance goes to 0, weighted by the IPC Toolkit's rest areas of its primitives
+(``ipctk.BarrierPotential(dhat, stiffness, use_physical_barrier=True)`` with area weighting), so
+that it acts as a contact pressure that converges with the mesh; ``stiffness`` scales it (the
+pressures it gives are measured by ``nodal_pressure``; docs/contact.md). Its gradient goes into the residual and its
+exact Hessian (no PSD projection) into the tangent, which stays the symmetric Hessian of one total
+energy: Newton, MUMPS Cholesky and the sensitivities dX/dc (one solve per control with the same
+factor) see the contact with no change.
+
+A pair couples nodes of the two lips that share no element, outside the finite-element sparsity.
+``coupled_blocks`` lists the lip node pairs within ``pattern_radius`` of each other at rest; the
+solver adds them to the tangent's pattern once at set-up (``equilibrium.solver``,
+``widened_tangent``). A pair found beyond it (lips sliding far along each other) is still added:
+the matrix accepts the new entry and MUMPS analyses the changed pattern again at the next
+factorisation.
+
+Continuous collision detection (``ipctk.compute_collision_free_stepsize``) bounds every Newton
+step so that no point of the line-search segment lets two lip primitives come closer than
+(1 - CCD_KEEP) of their smallest distance now: no iterate ever penetrates.
+
+Under MPI every rank gathers all lip nodes (a few hundred) and computes the same pairs; each adds
+the gradient and Hessian rows of the nodes it owns (columns anywhere). The energy and the step
+bound are reduced (min) over the ranks so that every rank takes the same step.
+"""
+from dataclasses import dataclass
+
+import ipctk
+from mpi4py import MPI
+from petsc4py import PETSc
+import numpy as np
+from dolfinx import fem
+
+from face_dolfinx.physics.contact import ContactSurface
+
+# No point of a Newton step's line-search segment may bring two lip primitives closer than
+# (1 - CCD_KEEP) of their smallest distance now (IPC's conservative rescaling).
+CCD_KEEP = 0.8
+
+# The narrow phase of the step bound: additive CCD (Li et al. 2021), some thousand times faster than
+# ipctk's default tight-inclusion CCD with a minimum distance on the 5K face's pressed lips, for
+# the same step fractions (benchmarks/lip_ccd.py, docs/contact.md).
+NARROW_PHASE = ipctk.AdditiveCCD()
+
+# Newton iterations a solve with lip contact may take before continuation takes over.
+LIP_NEWTON_ITERATIONS = 100
+
+# The landmarks that place the mouth.
+LIP_LANDMARKS = ("mouth_corner_left", "mouth_corner_right", "upper_lip_center", "lower_lip_center")
+
+
+@dataclass
+class LipContactSettings:
+    """The lips' barrier: activation distance ``dhat`` (mm) and ``stiffness`` (the barrier's
+    scale: a stiffer barrier holds the lips further apart under the same pressure); how far from
+    the mouth-corner segment a facet of the slit may lie (``depth``, mm) and how squarely it must
+    face the other lip (``facing``: cosine of the angle between its normal and the direction
+    between the lips); ``pattern_radius`` (mm): lip node pairs this close at rest get room in the
+    tangent's sparsity (docs/contact.md)."""
+
+    dhat: float = 0.05
+    stiffness: float = 10.0
+    depth: float = 15.0
+    facing: float = 0.7
+    pattern_radius: float = 15.0
+    where: str = "the lip contact settings"  # named in error messages (a file, an option)
+
+
+def lip_facets(model, settings: LipContactSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Local indices of the upper and lower lip facets of ``model`` (see the module docstring) and
+    the unit direction from the lower lip to the upper.
+    ValueError naming the model if a landmark or the skin tag is missing or no facet qualifies."""
+    missing = [name for name in LIP_LANDMARKS if name not in model.landmarks]
+    if missing or "skin" not in model.boundary_ids:
+        what = f"the landmarks {', '.join(missing)}" if missing else "facets tagged 'skin'"
+        raise ValueError(f"{settings.where}: model {model.path} has no {what}, which place the lips "
+                         "(docs/model_format.md)")
+    mesh = model.mesh
+    tdim = mesh.topology.dim
+    for dims in ((tdim - 1, 0), (tdim - 1, tdim), (tdim, 0)):
+        mesh.topology.create_connectivity(*dims)
+    facet_vertices = mesh.topology.connectivity(tdim - 1, 0)
+    facet_cells = mesh.topology.connectivity(tdim - 1, tdim)
+    cell_vertices = mesh.topology.connectivity(tdim, 0)
+    x = mesh.geometry.x
+    # Geometry nodes of the vertices (P1 geometry: the same numbering only by chance, so mapped).
+    vertex_node = np.empty(mesh.topology.index_map(0).size_local + mesh.topology.index_map(0).num_ghosts, dtype=np.int64)
+    vertex_node[cell_vertices.array.reshape(-1, 4)] = mesh.geometry.dofmap.array.reshape(len(cell_vertices), -1)[:, :4]
+    landmarks = model.landmarks
+    left, right = (np.asarray(landmarks[k], dtype=float) for k in LIP_LANDMARKS[:2])
+    up = np.asarray(landmarks["upper_lip_center"], dtype=float) - np.asarray(landmarks["lower_lip_center"], dtype=float)
+    up /= np.linalg.norm(up)
+    axis = right - left
+    upper, lower = [], []
+    for facet in model.facet_tags.find(model.boundary_ids["skin"]):
+        corners = vertex_node[facet_vertices.links(facet)]
+        cell = facet_cells.links(facet)[0]
+        opposite = np.setdiff1d(vertex_node[cell_vertices.links(cell)], corners)[0]
+        p = x[corners]
+        normal = np.cross(p[1] - p[0], p[2] - p[0])
+        normal /= np.linalg.norm(normal)
+        if normal @ (p[0] - x[opposite]) < 0.0:
+            normal = -normal
+        centre = p.mean(axis=0)
+        t = np.clip((centre - left) @ axis / (axis @ axis), 0.0, 1.0)
+        if np.linalg.norm(centre - left - t * axis) > settings.depth:
+            continue
+        if normal @ up <= -settings.facing:
+            upper.append(facet)
+        elif normal @ up >= settings.facing:
+            lower.append(facet)
+    upper, lower = np.array(upper, dtype=np.int32), np.array(lower, dtype=np.int32)
+    comm = mesh.comm
+    if comm.allreduce(len(upper), op=MPI.SUM) == 0 or comm.allreduce(len(lower), op=MPI.SUM) == 0:
+        raise ValueError(f"{settings.where}: model {model.path} has no skin facets lining the mouth slit "
+                         f"within {settings.depth:g} mm of its corners facing the other lip")
+    return upper, lower, up
+
+
+class LipContact:
+    """The barrier energy of the lips against each other, as an extra energy term of the
+    equilibrium solver (module docstring). ``upper``, ``lower``, ``up``: ``lip_facets``;
+    ``constrained_blocks``: the local blocks a bone holds (refused on the lips)."""
+
+    def __init__(self, space: fem.FunctionSpace, upper: np.ndarray, lower: np.ndarray, up: np.ndarray,
+                 settings: LipContactSettings, constrained_blocks: np.ndarray):
+        if not settings.dhat > 0.0 or not settings.stiffness > 0.0:
+            raise ValueError(f"{settings.where}: dhat and the stiffness must be positive "
+                             f"(got {settings.dhat:g} mm, {settings.stiffness:g} kPa)")
+        self.settings = settings
+        self.up = np.asarray(up, dtype=float)
+        self.dhat, self.stiffness = settings.dhat, settings.stiffness
+        self.surface = ContactSurface(space, np.concatenate([upper, lower]))
+        self.comm = self.surface.comm
+        index_map = space.dofmap.index_map
+        # Global block (node) index of every lip node, and whether a bone holds it.
+        owned_global = index_map.local_to_global(self.surface.owned_blocks)
+        self.global_blocks = np.empty(self.surface.num_nodes, dtype=np.int64)
+        self.global_blocks[np.concatenate(self.comm.allgather(self.surface.owned_nodes))] = \
+            np.concatenate(self.comm.allgather(owned_global))
+        if self._flagged(constrained_blocks).size:
+            raise ValueError(f"{settings.where}: some lip nodes are held by a bone; the lip surfaces must be "
+                             "free flesh (shrink the lips' depth)")
+        dim = space.mesh.topology.dim - 1
+        self.upper_nodes = self._flagged(fem.locate_dofs_topological(space, dim, upper))
+        self.lower_nodes = self._flagged(fem.locate_dofs_topological(space, dim, lower))
+        faces = np.ascontiguousarray(self.surface.triangles, dtype=np.int32)
+        edges = ipctk.edges(faces)
+        self.mesh = ipctk.CollisionMesh(np.asfortranarray(self.surface.rest), np.asfortranarray(edges),
+                                        np.asfortranarray(faces))
+        self.potential = ipctk.BarrierPotential(self.dhat, self.stiffness, True)
+        # The cells near the lips (vertex blocks, rest corners, global vertex blocks), for
+        # ``penetration``.
+        cells = space.mesh.topology.index_map(3).size_local
+        blocks = space.dofmap.list.array.reshape(-1, space.dofmap.dof_layout.num_dofs)[:cells, :4]
+        rest_corners = space.tabulate_dof_coordinates()[:, :3][blocks]
+        centre, reach = self.surface.rest.mean(axis=0), np.ptp(self.surface.rest, axis=0).max()
+        near = np.linalg.norm(rest_corners.mean(axis=1) - centre, axis=1) < reach
+        self._cell_blocks, self._cell_rest = blocks[near], rest_corners[near]
+        self._cell_globals = index_map.local_to_global(blocks[near].reshape(-1)).reshape(-1, 4)
+        rest_distance = self.min_distance(np.zeros(3 * (space.dofmap.index_map.size_local + index_map.num_ghosts)))
+        if not rest_distance > self.dhat:
+            raise ValueError(f"{settings.where}: the lips are {rest_distance:.3g} mm apart at rest, not more than "
+                             f"dhat = {self.dhat:g} mm: give a smaller dhat")
+
+    def _flagged(self, blocks: np.ndarray) -> np.ndarray:
+        """Lip node indices (every rank) of the local blocks ``blocks`` of any rank."""
+        mine = np.zeros(self.surface.num_nodes)
+        mine[self.surface.local_nodes[np.isin(self.surface.local_blocks, blocks)]] = 1.0
+        self.comm.Allreduce(MPI.IN_PLACE, mine, op=MPI.MAX)
+        return np.flatnonzero(mine > 0.0)
+
+    # -- geometry ----------------------------------------------------------------------------
+    def positions(self, displacement: np.ndarray) -> np.ndarray:
+        """(lip nodes, 3) current positions (every rank; the owned part of ``displacement`` read)."""
+        return np.asfortranarray(self.surface.rest + self.surface.gather(displacement))
+
+    def _collisions(self, vertices: np.ndarray) -> ipctk.NormalCollisions:
+        collisions = ipctk.NormalCollisions()
+        collisions.use_area_weighting = True
+        collisions.build(self.mesh, vertices, self.dhat)
+        return collisions
+
+    def min_distance(self, displacement: np.ndarray, reach: float = np.inf) -> float:
+        """Smallest distance between lip primitives that share no vertex (mm; 0 once they
+        intersect), or ``reach`` if none is closer than that."""
+        vertices = self.positions(displacement)
+        if ipctk.has_intersections(self.mesh, vertices):
+            return 0.0
+        reach = min(reach, ipctk.world_bbox_diagonal_length(vertices))
+        collisions = ipctk.NormalCollisions()
+        collisions.build(self.mesh, vertices, reach)
+        # ipctk's distances are squared.
+        return float(np.sqrt(collisions.compute_minimum_distance(self.mesh, vertices))) if len(collisions) else reach
+
+    def pairs(self, displacement: np.ndarray) -> int:
+        """Number of barrier pairs (point-triangle, edge-edge, ...) within dhat."""
+        return len(self._collisions(self.positions(displacement)))
+
+    def nodal_forces(self, displacement: np.ndarray) -> np.ndarray:
+        """(lip nodes, 3) dE_s/dx: the contact force each lip node exerts (mN)."""
+        vertices = self.positions(displacement)
+        return self.potential.gradient(self._collisions(vertices), self.mesh, vertices).reshape(-1, 3)
+
+    def nodal_pressure(self, displacement: np.ndarray) -> np.ndarray:
+        """|contact force| / lumped rest area per lip node (kPa)."""
+        return np.linalg.norm(self.nodal_forces(displacement), axis=1) / self.surface.areas
+
+    def penetration(self, displacement: np.ndarray) -> float:
+        """Deepest lip node inside the flesh of the other lip (mm, 0 if none; every rank): a node
+        inside a cell it is no vertex of, by its distance to the other lip's surface. (A lip that
+        passes a slit's width through the other leaves the surfaces disjoint again, so the test
+        is by the cells.) ``displacement``: a local dof array with its ghosts."""
+        x = self.positions(displacement)
+        corners = self._cell_rest + displacement.reshape(-1, 3)[self._cell_blocks]
+        deepest = 0.0
+        for nodes, others in ((self.upper_nodes, self.lower_nodes), (self.lower_nodes, self.upper_nodes)):
+            triangles = self.surface.triangles[np.isin(self.surface.triangles, others).all(axis=1)]
+            for node in np.setdiff1d(nodes, others):
+                inside = _contains(corners, x[node]) & ~(self._cell_globals == self.global_blocks[node]).any(axis=1)
+                if inside.any():
+                    deepest = max(deepest, _distance_to_triangles(x[node], x[triangles]))
+        return self.comm.allreduce(deepest, op=MPI.MAX)
+
+    # -- sparsity ----------------------------------------------------------------------------
+    def coupled_blocks(self) -> np.ndarray:
+        """(pairs, 2) global block indices of the lip nodes within ``pattern_radius`` of each other at
+        rest, both orders: entries the tangent's sparsity must hold."""
+        rest = self.surface.rest
+        distance = np.linalg.norm(rest[:, None, :] - rest[None, :, :], axis=2)
+        i, j = np.nonzero(distance <= self.settings.pattern_radius)
+        return np.column_stack([self.global_blocks[i], self.global_blocks[j]])
+
+    # -- the solver's energy-term interface ---------------------------------------------------
+    def energy(self, x: PETSc.Vec) -> float:
+        """E_s at the displacement ``x`` (the same on every rank; inf once the lips intersect)."""
+        vertices = self.positions(x.array_r)
+        if ipctk.has_intersections(self.mesh, vertices):
+            value = np.inf
+        else:
+            value = float(self.potential(self._collisions(vertices), self.mesh, vertices))
+        return self.comm.allreduce(value, op=MPI.MAX)
+
+    def add_gradient(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        """b += dE_s/du on this rank's dofs."""
+        gradient = self.nodal_forces(x.array_r)[self.surface.owned_nodes]
+        b.array.reshape(-1, 3)[self.surface.owned_blocks] += gradient
+
+    def add_hessian(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> None:
+        """A += d2E_s/du2 on this rank's rows (assembled); rows and columns of Dirichlet dofs are
+        left alone (the lips are free flesh: checked at set-up)."""
+        vertices = self.positions(x.array_r)
+        collisions = self._collisions(vertices)
+        if len(collisions):
+            hessian = self.potential.hessian(collisions, self.mesh, vertices).tocsr()
+            owned_rows = (3 * self.surface.owned_nodes[:, None] + np.arange(3)).reshape(-1)
+            global_dof = (3 * self.global_blocks[:, None] + np.arange(3)).reshape(-1).astype(PETSc.IntType)
+            local = hessian[owned_rows].tocoo()
+            if local.nnz:
+                rows, columns = global_dof[owned_rows[local.row]], global_dof[local.col]
+                for row in np.unique(rows):
+                    here = rows == row
+                    A.setValues([row], columns[here], local.data[here], addv=PETSc.InsertMode.ADD_VALUES)
+        A.assemble()
+
+    def step_fraction(self, x: PETSc.Vec, step: PETSc.Vec, largest: float) -> float:
+        """Largest t in (0, 1] such that no point of x - s t largest step, s in [0, 1], brings two
+        lip primitives closer than (1 - CCD_KEEP) of their smallest distance now."""
+        return self.admissible_fraction(x.array_r, x.array_r - largest * step.array_r)
+
+    def admissible_fraction(self, start: np.ndarray, end: np.ndarray) -> float:
+        """The same bound for the straight path from the displacement ``start`` to ``end`` (dof
+        arrays, owned part read); the same on every rank."""
+        v0, v1 = self.positions(start), self.positions(end)
+        distance = self.min_distance(start, self.dhat)
+        # Every point of a primitive moves at most as far as its farthest vertex: two that close in
+        # by less than CCD_KEEP of the smallest distance cannot come closer than the bound.
+        # (The ranks may differ in the last bits of ipctk's threaded reductions: they agree by the
+        # reduction, whichever branch each took.)
+        fraction = 1.0
+        if 2.0 * np.linalg.norm(v1 - v0, axis=1).max(initial=0.0) > CCD_KEEP * distance:
+            fraction = float(ipctk.compute_collision_free_stepsize(self.mesh, v0, v1, (1.0 - CCD_KEEP) * distance,
+                                                                    narrow_phase_ccd=NARROW_PHASE))
+        return self.comm.allreduce(fraction, op=MPI.MIN)
+
+
+def _contains(corners: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """Which tetrahedra (cells, 4, 3) contain ``point`` (barycentric coordinates all >= 0)."""
+    edges = corners[:, 1:] - corners[:, :1]
+    offset = point - corners[:, 0]
+    with np.errstate(all="ignore"):
+        weights = np.linalg.solve(np.transpose(edges, (0, 2, 1)), offset[:, :, None])[:, :, 0]
+    return (weights >= 0.0).all(axis=1) & (weights.sum(axis=1) <= 1.0)
+
+
+def _distance_to_triangles(point: np.ndarray, triangles: np.ndarray) -> float:
+    """Distance of ``point`` to the nearest of the triangles (k, 3, 3)."""
+    return float(np.sqrt(min(ipctk.point_triangle_distance(point, *t) for t in triangles)))

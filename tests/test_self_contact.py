@@ -1,0 +1,250 @@
+"""Lip self-contact (face_dolfinx.physics.self_contact) on the small face: the lip surfaces found
+from the landmarks, the lips closed by the jaw and the orbicularis oris (without contact they pass
+through each other, with it no iterate penetrates), the barrier's gradient and Hessian against
+finite differences of the total energy through the assembled residual and tangent, the widened
+sparsity, the sensitivities with pressed lips against central differences, the same result on 1
+and 2 ranks, and bad input.
+"""
+from dataclasses import replace
+
+from mpi4py import MPI
+from petsc4py import PETSc
+import numpy as np
+import pytest
+import dolfinx.fem.petsc as fem_petsc
+from dolfinx import fem
+
+from face_dolfinx.model.bones import jaw_pose
+from face_dolfinx.model.folder import load_model
+from face_dolfinx.physics.points import PointEvaluator
+from face_dolfinx.physics.problem import FaceProblem
+from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, lip_facets
+from face_dolfinx.sensitivities.columns import EquilibriumSensitivity
+
+CLOSED = np.radians(-2.0)  # the jaw 2 degrees beyond its rest (closed) pose
+LIP_MARKERS = ("upper_lip_1", "upper_lip_4", "lower_lip_4", "lower_lip_7", "mouth_corner_left")
+
+
+def sphincter(model, level=1.0):
+    return {m.name: level for m in model.muscles if m.name.startswith("orbicularis_oris")}
+
+
+def pressed_lips(model):
+    problem = FaceProblem(model, lip_contact=LipContactSettings())
+    report = problem.solve(activations=sphincter(model), jaw=jaw_pose(model.jaw, CLOSED))
+    assert report.converged
+    return problem
+
+
+@pytest.fixture(scope="module")
+def pressed(model):
+    return pressed_lips(model)
+
+
+def test_lip_surfaces_of_the_small_face(model):
+    upper, lower, up = lip_facets(model, LipContactSettings())
+    assert up[1] > 0.9  # the upper lip lies above the lower
+    problem = FaceProblem(model)
+    lips = LipContact(problem.V, upper, lower, up, LipContactSettings(), problem.bone_blocks)
+    # The two walls of the mouth slit, 48 triangles each, meet at the corners: 72 nodes, 6 on both.
+    assert len(lips.surface.triangles) == 96 and lips.surface.num_nodes == 72
+    assert len(lips.upper_nodes) == len(lips.lower_nodes) == 39
+    assert lips.min_distance(problem.u.x.array) == pytest.approx(0.4774, abs=1e-4)
+    assert lips.penetration(problem.u.x.array) == 0.0
+
+
+def test_without_contact_the_lips_pass_through_each_other(model):
+    problem = FaceProblem(model)
+    problem.solve(activations=sphincter(model), jaw=jaw_pose(model.jaw, CLOSED))
+    lips = LipContact(problem.V, *lip_facets(model, LipContactSettings()), LipContactSettings(), problem.bone_blocks)
+    assert lips.penetration(problem.u.x.array) > 10.0  # mm
+
+
+def test_no_iterate_penetrates(model):
+    problem = FaceProblem(model, lip_contact=LipContactSettings())
+    distances, depths = [], []
+
+    iterate, owned = fem.Function(problem.V), problem.u.vector.getLocalSize()
+
+    def monitor(snes, iteration, norm):
+        iterate.x.array[:owned] = snes.getSolution().array_r  # with its ghosts, for the cells' corners
+        iterate.x.scatter_forward()
+        x = iterate.x.array
+        distances.append(problem.lips.min_distance(x))
+        depths.append(problem.lips.penetration(x))
+
+    problem.solver.snes.setMonitor(monitor)
+    report = problem.solve(activations=sphincter(model), jaw=jaw_pose(model.jaw, CLOSED))
+    problem.solver.snes.cancelMonitor()
+    assert report.converged and report.load_steps == 1
+    assert len(distances) > 10 and min(distances) > 0.0 and max(depths) == 0.0
+    u = problem.u.x.array
+    assert 0.0 < problem.lips.min_distance(u) < problem.lips.dhat
+    assert problem.lips.pairs(u) > 20
+    assert problem.residual_norm() < 1e-6
+
+
+def _bone_dofs(problem):
+    """The owned local dofs of the bone-attached nodes."""
+    dofs = (3 * problem.bone_blocks[:, None] + np.arange(3)).reshape(-1)
+    return dofs[dofs < problem.u.vector.getLocalSize()]
+
+
+def _free_direction(problem, seed):
+    """A random direction of the free dofs (zero on the bones)."""
+    v = problem.u.vector.duplicate()
+    rng = np.random.default_rng(seed + 7 * problem.comm.rank)
+    v.array[:] = rng.standard_normal(v.getLocalSize())
+    v.array[_bone_dofs(problem)] = 0.0
+    return v
+
+
+def _residual(problem, x):
+    """The total residual (flesh and lips) at ``x``, without Dirichlet rows set."""
+    problem.u.vector.array[:] = x.array_r
+    problem.u.x.scatter_forward()
+    b = problem.u.vector.duplicate()
+    b.set(0.0)
+    fem_petsc.assemble_vector(b, problem.solver.residual_form)
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    problem.lips.add_gradient(problem.u.vector, b)
+    return b
+
+
+def test_gradient_and_hessian_against_differences_of_the_energy(pressed):
+    """Along a random direction of the free dofs: the lips' dE . v against central differences of
+    their energy, and K v (the solver's tangent, flesh and lips) against central differences of
+    the total residual."""
+    lips, u = pressed.lips, pressed.u.vector.copy()
+    assert lips.pairs(pressed.u.x.array) > 20
+    v = _free_direction(pressed, 1)
+    # Steps well inside the smallest gap: the barrier stays smooth along them.
+    v.scale(0.02 * lips.min_distance(pressed.u.x.array) / v.norm(PETSc.NormType.NORM_INFINITY))
+
+    def at(h):
+        x = u.copy()
+        x.axpy(h, v)
+        pressed.u.vector.array[:] = x.array_r
+        pressed.u.x.scatter_forward()
+        return x
+
+    # The lips' energy and gradient (the total gradient vanishes at the equilibrium).
+    gradient = u.duplicate()
+    gradient.set(0.0)
+    lips.add_gradient(u, gradient)
+    assert abs(gradient.dot(v)) > 1e-6 * gradient.norm() * v.norm()
+    for h in (1.0, 0.5):
+        fd = (lips.energy(at(h)) - lips.energy(at(-h))) / (2 * h)
+        assert fd == pytest.approx(gradient.dot(v), rel=1e-4 * h ** 2)
+    at(0.0)
+    pressed.solver.assemble_tangent(pressed.solver.tangent)
+    Kv = u.duplicate()
+    pressed.solver.tangent.mult(v, Kv)
+    h = 0.5
+    fd = _residual(pressed, at(h))
+    fd.axpy(-1.0, _residual(pressed, at(-h)))
+    fd.scale(1.0 / (2 * h))
+    # The bones' rows of K are the identity's: compare the free rows.
+    for vector in (fd, Kv):
+        vector.array[_bone_dofs(pressed)] = 0.0
+    difference = fd.copy()
+    difference.axpy(-1.0, Kv)
+    assert difference.norm() <= 1e-5 * Kv.norm()
+    # The lips' share of K v is large: the check sees the barrier's Hessian.
+    A = pressed.solver.tangent.duplicate()
+    A.zeroEntries()
+    lips.add_hessian(u, A, np.zeros(0, dtype=np.int32))
+    Hv = u.duplicate()
+    A.mult(v, Hv)
+    assert Hv.norm() > 0.1 * Kv.norm()
+    assert A.isSymmetric(1e-8 * A.norm())
+    at(0.0)
+
+
+def test_the_tangents_sparsity_holds_the_lip_pairs(pressed):
+    """Every entry of the pressed lips' Hessian lies in the pattern set up at rest (no new nonzero,
+    so MUMPS keeps its analysis)."""
+    before = pressed.solver.tangent.getInfo()["nz_allocated"]
+    pressed.solver.assemble_tangent(pressed.solver.tangent)
+    info = pressed.solver.tangent.getInfo()
+    assert info["nz_allocated"] == before and info["mallocs"] == 0
+
+
+def test_activation_columns_with_pressed_lips(pressed, model):
+    """dX/da by the solver's factor (the lips' Hessian included) against central differences, at
+    lips pressed by the orbicularis oris at 0.9 with the depressor anguli oris at 0.2."""
+    activations = pressed.activation_vector({**sphincter(model, 0.9), "depressor_anguli_oris_left": 0.2})
+    assert pressed.solve(activations=activations).converged
+    assert pressed.lips.pairs(pressed.u.x.array) > 20
+    base, controls = pressed.u.x.array.copy(), pressed.controls.copy()
+    markers = PointEvaluator(pressed.V, np.array([model.markers[name] for name in LIP_MARKERS]))
+    sensitivity = EquilibriumSensitivity(pressed)
+    sensitivity.factor()
+    columns = markers.values_many(sensitivity.activation_columns())
+    step = 1e-4
+    for name in ("orbicularis_oris_upper_left", "depressor_anguli_oris_left"):
+        muscle = model.muscle_index(name)
+        bump = np.zeros_like(activations)
+        bump[muscle] = step
+        pressed.solve(activations=activations + bump)
+        plus = markers.values(pressed.u.x.array)
+        pressed.solve(activations=activations - bump)
+        minus = markers.values(pressed.u.x.array)
+        fd = (plus - minus) / (2 * step)
+        assert np.abs(columns[muscle] - fd).max() <= 1e-3 * np.abs(fd).max(), name
+        pressed.adopt(controls, base)
+
+
+def test_same_result_on_one_rank(builtin_model_path):
+    """The distributed solve against the same problem on this rank alone (every rank gathers the
+    lips, computes the same pairs and adds the rows it owns)."""
+    here = pressed_lips(load_model(builtin_model_path, MPI.COMM_WORLD))
+    alone = pressed_lips(load_model(builtin_model_path, MPI.COMM_SELF))
+    forces = [problem.lips.nodal_forces(problem.u.x.array) for problem in (here, alone)]
+    assert np.abs(forces[0] - forces[1]).max() <= 1e-6 * np.abs(forces[1]).max()
+    assert here.lips.min_distance(here.u.x.array) == pytest.approx(alone.lips.min_distance(alone.u.x.array), rel=1e-6)
+
+
+def test_bad_input_is_refused_before_any_solve(model):
+    with pytest.raises(ValueError, match="dhat and the stiffness must be positive"):
+        FaceProblem(model, lip_contact=LipContactSettings(dhat=0.0))
+    with pytest.raises(ValueError, match="apart at rest"):
+        FaceProblem(model, lip_contact=LipContactSettings(dhat=1.0))  # the slit is 0.48 mm at its corners
+    landmarks = dict(model.landmarks)
+    del landmarks["upper_lip_center"]
+    with pytest.raises(ValueError, match="upper_lip_center"):
+        lip_facets(replace(model, landmarks=landmarks), LipContactSettings())
+    with pytest.raises(ValueError, match="no skin facets lining the mouth slit"):
+        lip_facets(model, LipContactSettings(depth=0.01))
+
+
+def test_fit_of_pressed_lips_with_contact(model):
+    """Markers of lips pressed together (the truth solved with contact) fitted with contact: the
+    activations are recovered and the fitted lips do not pass each other."""
+    from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
+    problem = FaceProblem(model, lip_contact=LipContactSettings())
+    truth = problem.activation_vector({**sphincter(model, 0.9), "depressor_anguli_oris_left": 0.2})
+    assert problem.solve(activations=truth).converged
+    assert problem.lips.pairs(problem.u.x.array) > 20
+    markers = MarkerSet(problem, np.array(list(model.markers.values())))
+    targets = markers.positions(problem.u.x.array, problem.controls.cranium)
+    problem.reset_to_rest()
+    fitter = FaceFitter(problem, markers, FitSettings(fit_head=False, fit_jaw=False, first_frame_gn_steps=10))
+    result = fitter.fit_frame(targets)
+    error = np.abs(result.activations - truth).max()
+    # Measured: 0.026 mm from 3.5 mm, activation error 0.014, in 6 Gauss-Newton steps.
+    assert result.rms_error < 0.05  # mm: a tenth of a capture's noise
+    assert error < 0.05
+    assert problem.lips.penetration(problem.u.x.array) == 0.0
+    assert problem.lips.min_distance(problem.u.x.array) > 0.0
+
+
+def test_tracking_with_contact_builds_the_lips_into_its_problem(model):
+    """``fit --contact``: the tracking setting reaches the problem and the run's record."""
+    from face_dolfinx.cli.main import parse_arguments, tracking_settings
+    from face_dolfinx.tracking import Tracker
+    settings = tracking_settings(parse_arguments(["fit", "take.trc", "--contact"])[0])
+    assert settings.lip_contact and settings.record()["contact"] is True
+    problem = Tracker(model, settings).problem
+    assert problem.lips is not None and problem.lips.settings.where == "--contact"
+    assert problem.solver.energy_terms == (problem.lips,)
