@@ -69,8 +69,36 @@ def _model_from_args(args):
     from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.model.folder import load_model
     path = pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets)
-    model = load_model(path, MPI.COMM_WORLD)
-    return model.with_strength(args.strength) if args.strength else model
+    return _with_overrides(load_model(path, MPI.COMM_WORLD), args)
+
+
+def _with_overrides(model, args):
+    """``model`` with the ``--strength`` and ``--material`` overrides of the command line."""
+    model = model.with_strength(args.strength) if args.strength else model
+    return model.with_material(args.material) if args.material else model
+
+
+def material_option(text: str) -> tuple:
+    """``--material``: a TOML file of ``[[region]]`` tables, or ``REGION:PARAM=FACTOR,...`` overrides
+    separated by ``;`` (``face_dolfinx.model.regions``)."""
+    from face_dolfinx.model.regions import MaterialError, parse_material_option, read_material_file
+    try:
+        if text.strip().endswith(".toml"):
+            return tuple(read_material_file(text.strip()))
+        overrides = tuple(parse_material_option(item) for item in text.split(";") if item.strip())
+    except MaterialError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    if not overrides:
+        raise argparse.ArgumentTypeError(f"{text!r}: give REGION:PARAM=FACTOR or a TOML file")
+    return overrides
+
+
+def add_material_option(parser) -> None:
+    parser.add_argument("--material", type=material_option, metavar="REGION:PARAM=F[;...]|FILE.toml",
+                        help="regional flesh overrides: REGION = muscle:NAME, sphere:X,Y,Z,R or "
+                             "box:X0,Y0,Z0,X1,Y1,Z1 (mm), PARAM = mu10, mu01, kappa, passive or all, F its "
+                             "factor (e.g. sphere:0,95,20,12:all=0.3 softens the nose); or a TOML file of "
+                             "[[region]] tables that may also set values (docs/dynamics.md)")
 
 
 def strength_option(text: str) -> dict[str, float]:
@@ -100,7 +128,7 @@ def add_strength_option(parser) -> None:
 
 def _coarse_model(args):
     """The model named by ``--coarse``: a number is a built-in face resolution, else a folder; with
-    the same ``--strength`` as the fine one."""
+    the same ``--strength`` and ``--material`` as the fine one."""
     if not args.coarse:
         return None
     from face_dolfinx.model.anatomy import build_builtin_face
@@ -111,7 +139,7 @@ def _coarse_model(args):
         model = load_model(build_builtin_face(target_tets=int(args.coarse)), MPI.COMM_WORLD)
     else:
         model = load_model(pathlib.Path(args.coarse), MPI.COMM_WORLD)
-    return model.with_strength(args.strength) if args.strength else model
+    return _with_overrides(model, args)
 
 
 def _expression_controls(model, name: str):
@@ -176,6 +204,7 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
         if comm.rank == 0:
             (staging / "summary.json").write_text(json.dumps(
                 dict(model=str(model.path), expressions=rows, object=object_rows, ranks=comm.size,
+                     material=[override.describe() for override in model.material_overrides],
                      coarse_model=str(coarse_model.path) if coarse_model is not None else None),
                 indent=2))
     return rows
@@ -367,7 +396,8 @@ def fit(model, args) -> None:
                                      truth_file=truth_file if truth_file.exists() else None, setup=setup,
                                      take_frames=take_frames,
                                      extra=dict(correspondence=correspondence, take_frame_selection=args.frames,
-                                                strength=args.strength))
+                                                strength=args.strength,
+                                                material=[override.describe() for override in model.material_overrides]))
     except FitFolderError as error:
         raise SystemExit(str(error)) from None
     if folder.finished:
@@ -521,6 +551,7 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--overwrite", action="store_true", help="replace an existing result folder")
     p.add_argument("--no-render", action="store_true", help="skip the PNG renders")
     add_strength_option(p)
+    add_material_option(p)
     p.add_argument("--coarse", metavar="TETS|FOLDER",
                    help="start each solve from the equilibrium of a coarse model of the same face: "
                         "the built-in face at TETS tets, or a model folder (docs/performance.md: "
@@ -564,6 +595,7 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
         p.add_argument("--out", default=out, help="output path")
         p.add_argument("--overwrite", action="store_true", help="replace existing output")
         add_strength_option(p)
+        add_material_option(p)
 
     p = sub.add_parser("synth", help="synthetic take with known truth")
     model_options(p, "takes/speech.trc")

@@ -38,6 +38,8 @@ import dolfinx.fem.petsc as fem_petsc
 
 import forms
 from face_dolfinx.model.bones import AffineMap
+from face_dolfinx.model.folder import cell_midpoints
+from face_dolfinx.model.regions import material_fields
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
 from face_dolfinx.physics.contact import ContactPotential, ContactSettings
@@ -140,6 +142,24 @@ def build_muscle_slots(model, mesh) -> MuscleSlots:
     return MuscleSlots(muscle_of_slot, weight, fiber, activation, direction)
 
 
+def build_material_fields(model, mesh) -> dict[str, fem.Function] | None:
+    """The flesh parameters mu10, mu01, kappa (kPa) and the passive fibre scale as DG0 functions
+    with the model's regional overrides (``face_dolfinx.model.regions``); None for a model without
+    overrides, whose forms keep the parameters as numbers: FFCx folds those into the kernels'
+    constants, and the same values in DG0 functions change a solve in the last bit (8e-16 mm on
+    the slab), so a uniform model gives the results it always gave, to the bit."""
+    if not model.material_overrides:
+        return None
+    DG0 = fem.FunctionSpace(mesh, ("DG", 0))
+    dofs = _dg0_cell_dofs(DG0)
+    fields = {}
+    for name, values in material_fields(model, cell_midpoints(mesh)).items():
+        function = fem.Function(DG0, name=f"material_{name}")
+        function.x.array[dofs] = values  # every local cell's own value: nothing to scatter
+        fields[name] = function
+    return fields
+
+
 class FaceProblem:
     """Quasistatic face for given activations and bone frames.
 
@@ -194,9 +214,12 @@ class FaceProblem:
         q = quadrature_degree if quadrature_degree is not None else max(1, 2 * (degree - 1))
         dx = ufl.dx(domain=mesh, metadata={"quadrature_degree": q})
         self.slots = build_muscle_slots(model, mesh)
+        self.material_fields = build_material_fields(model, mesh)
 
-        self.material = FaceMaterial.from_parameters(model.material, [
-            FiberSlot(f0, w, a) for w, f0, a in zip(self.slots.weight, self.slots.fiber, self.slots.activation)])
+        fields = self.material_fields
+        self.material = FaceMaterial.from_parameters(model.material if fields is None else fields, [
+            FiberSlot(f0, w, a) for w, f0, a in zip(self.slots.weight, self.slots.fiber, self.slots.activation)],
+            passive_scale=1.0 if fields is None else fields["passive"])
         F = forms.deformation_gradient(self.u)
         energy = self.material.strain_energy(F) * dx
         v = ufl.TestFunction(self.V)
@@ -241,10 +264,11 @@ class FaceProblem:
             self.contact = ContactPotential(self.V, model.facet_tags.find(tag), contact)
         if self.contact is not None:
             self.contact.check_clear(self.u.x.array)
-        self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent="general" if intraoral_pressure else "spd",
+        self._tangent_structure = "general" if intraoral_pressure else "spd"
+        self._petsc_options = {"snes_linesearch_max_it": line_search_iterations, **general, **(petsc_options or {})}
+        self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent=self._tangent_structure,
                                         energy=energy,
-                                        petsc_options={"snes_linesearch_max_it": line_search_iterations,
-                                                       **general, **(petsc_options or {})},
+                                        petsc_options=self._petsc_options,
                                         inversion_guard=InversionGuard(self.V) if inversion_guard else None,
                                         reuse_policy=FactorReusePolicy(across_solves=reuse_factorization,
                                                                        refresh_contraction=refresh_contraction),
