@@ -225,6 +225,7 @@ class FaceProblem:
         v = ufl.TestFunction(self.V)
         # The residual from the laws' stresses: the tangent is then one automatic derivative.
         residual = ufl.inner(self.material.first_piola(F), ufl.grad(v)) * dx
+        self.degree = degree
         self.has_pressure = intraoral_pressure
         self.pressure = fem.Constant(mesh, PETSc.ScalarType(0.0))
         if intraoral_pressure:
@@ -264,6 +265,8 @@ class FaceProblem:
             self.contact = ContactPotential(self.V, model.facet_tags.find(tag), contact)
         if self.contact is not None:
             self.contact.check_clear(self.u.x.array)
+        # The time integrator adds inertia and damping to the residual, with its test function.
+        self._residual, self._test_function = residual, v
         self._tangent_structure = "general" if intraoral_pressure else "spd"
         self._petsc_options = {"snes_linesearch_max_it": line_search_iterations, **general, **(petsc_options or {})}
         self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent=self._tangent_structure,
@@ -277,6 +280,34 @@ class FaceProblem:
                                         energy_terms=(self.contact,) if self.contact is not None else ())
         self.controls = self.rest_controls()
         self.set_controls(self.controls)
+
+    def dynamics(self, settings=None):
+        """A time integrator of this face (``face_dolfinx.equilibrium.dynamics.DynamicFace``): the
+        residual with inertia and damping (``forms.Inertia``, ``forms.ViscousDamping``) of
+        ``settings`` (``DynamicSettings``; default: tissue density, no damping, Newmark's average
+        acceleration), its own Newton solver with this problem's options and inversion guard,
+        starting from the current displacement and controls."""
+        from face_dolfinx.equilibrium.dynamics import DynamicFace, DynamicSettings, TimeLevels
+        settings = settings if settings is not None else DynamicSettings()
+        if self.contact is not None:
+            raise ValueError("dynamic re-simulation with contact objects is not supported: the barrier has no time "
+                             "step control; simulate without --object")
+        levels = TimeLevels(self.V)
+        # rho u.v integrated exactly for degree p: 2p.
+        dx = ufl.dx(domain=self.mesh, metadata={"quadrature_degree": 2 * self.degree})
+        v = self._test_function
+        inertia = forms.Inertia(settings.density)
+        residual = self._residual + inertia.virtual_work(levels.new_acceleration(self.u), v) * dx
+        if settings.damped:
+            damping = forms.ViscousDamping(settings.density, settings.mass_damping, settings.viscosity)
+            residual = residual + damping.virtual_work(levels.new_velocity(self.u), v) * dx
+        solver = QuasistaticSolver(residual, self.u, self.bcs, tangent=self._tangent_structure,
+                                   petsc_options=self._petsc_options,
+                                   inversion_guard=self.solver.inversion_guard,
+                                   step_tolerance=self.solver.step_tolerance, keep_packed_coefficients=True)
+        mass = compile_form(inertia.virtual_work(ufl.TrialFunction(self.V), v) * dx)
+        kinetic_energy = compile_form(inertia.kinetic_energy(levels.velocity) * dx)
+        return DynamicFace(self, settings, solver, levels, mass, kinetic_energy)
 
     # -- set-up ------------------------------------------------------------------------------
     def _surface_tag(self, name: str, missing: str) -> int:
