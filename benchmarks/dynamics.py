@@ -158,6 +158,10 @@ def main() -> None:
     parser.add_argument("--plot", type=pathlib.Path, help="PNG chart of the marker differences")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+    import provenance
+    # The commit and its dirty flag as the run starts (the tree may change while it runs).
+    started = provenance.entry(provenance.this_command(comm.size), [args.tets], comm.size) if comm.rank == 0 else None
     path = build_builtin_face(target_tets=args.tets, comm=comm)
     if comm.rank == 0:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -174,9 +178,7 @@ def main() -> None:
     if comm.rank == 0:
         if args.plot:
             plot(results, args.plot, noise=0.5)
-        sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-        from provenance import record
-        record(args.out, tets=[args.tets], ranks=comm.size)
+        provenance.append(args.out, started)
 
 
 if __name__ == "__main__":

@@ -38,7 +38,6 @@ from typing import Callable
 from mpi4py import MPI
 from petsc4py import PETSc
 import numpy as np
-import ufl
 from dolfinx import fem
 import dolfinx.fem.petsc as fem_petsc
 
