@@ -1,6 +1,8 @@
 """Dynamic re-simulation (face_dolfinx.equilibrium.dynamics): inertia and damping added to the
 quasistatic face, stepped by Newmark's average acceleration or backward Euler, checked against a
 cantilever's first bending mode, energy conservation, the quasistatic limit and rigid motion."""
+import json
+import pathlib
 from types import SimpleNamespace
 
 from mpi4py import MPI
@@ -8,6 +10,7 @@ import numpy as np
 import pytest
 from dolfinx import mesh as dmesh
 
+from face_dolfinx.cli.main import main
 from face_dolfinx.equilibrium.dynamics import DynamicsError, DynamicSettings, TISSUE_DENSITY
 from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.physics.problem import Controls, FaceProblem
@@ -93,10 +96,11 @@ def test_first_bending_mode_of_a_cantilever():
     Euler-Bernoulli omega_1 = 1.8751^2 sqrt(E I / (rho A L^4)), E = 9 K mu / (3 K + mu) with the
     small-strain moduli of the flesh law (mu = 2 (mu10 + mu01) = 16 kPa, K = kappa = 60 kPa), I = h^4/12,
     A = h^2. Timoshenko's shear and rotary inertia lower it by about 0.6% at L/h = 10; P2 tets and
-    40 Newmark steps a period measure the period within 2% (0.3% measured)."""
+    40 Newmark steps a period (lengthening it by (omega dt)^2 / 12 = 0.2%) measure it within 2%
+    (0.4% short, measured)."""
     length, height = 100.0, 10.0
     problem = FaceProblem(bar_model(length, height), degree=2)
-    problem.solve(activations=[0.01])
+    problem.solve(activations=[0.005])
     mu, bulk = 2 * (6.0 + 2.0), 60.0
     young = 9 * bulk * mu / (3 * bulk + mu)
     omega = 1.8751**2 * np.sqrt(young * height**2 / 12 / (TISSUE_DENSITY * length**4))
@@ -110,13 +114,13 @@ def test_first_bending_mode_of_a_cantilever():
     tip &= owned
     count = COMM.allreduce(int(tip.sum()), op=MPI.SUM)
     heights = []
-    dynamic.run(lambda t: rest, np.arange(0.0, 2.6 * period, dt), lambda index, t, report: heights.append(
+    dynamic.run(lambda t: rest, np.arange(0.0, 1.3 * period, dt), lambda index, t, report: heights.append(
         COMM.allreduce(float(problem.u.x.array.reshape(-1, 3)[tip, 2].sum()), op=MPI.SUM) / count))
     heights = np.array(heights)
     assert 0.1 < abs(heights[0]) < 5.0  # mm: a small swing of the 100 mm bar
     crossing = np.flatnonzero(np.sign(heights[1:]) != np.sign(heights[:-1]))
     times = (crossing + heights[crossing] / (heights[crossing] - heights[crossing + 1])) * dt
-    assert len(times) >= 4
+    assert len(times) >= 3
     measured = 2 * np.mean(np.diff(times))
     assert measured == pytest.approx(period, rel=0.02)
 
@@ -141,10 +145,10 @@ def test_slow_driving_approaches_the_quasistatic_equilibrium():
 
         dynamic.run(controls_at, [0.0, duration])
         differences.append(global_max(problem.u.x.array - quasistatic.u.x.array) / scale)
-    assert scale > 1.0
+    assert scale > 0.5  # mm
     assert differences[0] > 0.3  # a sudden push: far from equilibrium
     assert differences[0] > differences[1] > differences[2]
-    assert differences[2] < 0.05
+    assert differences[2] < 0.05  # 0.60, 0.25, 0.013 measured
 
 
 def test_bones_moving_at_constant_velocity_carry_the_flesh_rigidly():
@@ -200,13 +204,36 @@ def test_bad_input_names_the_problem():
             dynamic.run(lambda t: rest, times)
     assert dynamic.time == 0.0
 
-    # The mandible end thrown 60 mm into the cranium end within 2 ms: no substep converges.
+    # After 4 ms the mandible end is thrown 60 mm into the cranium end (a 40 mm slab): no substep
+    # converges.
     def crushing(t):
-        return Controls(rest.activations, rest.cranium, AffineMap(np.eye(3), [-60.0 * min(t / 0.012, 1), 0, 0]))
+        return Controls(rest.activations, rest.cranium, AffineMap(np.eye(3), [-60.0 if t > 0.004 else 0.0, 0, 0]))
 
     written = []
-    with pytest.raises(DynamicsError, match=r"no converged time step at t = 0\.01 s: a substep of 0\.0005 s "
-                                            r"failed .* after 3 halving\(s\)"):
-        dynamic.run(crushing, [0.0, 0.004, 0.01, 0.012], lambda index, t, report: written.append(t))
-    assert written[:3] == [0.0, 0.004, 0.01]
-    assert dynamic.time == pytest.approx(0.01)
+    with pytest.raises(DynamicsError, match=r"no converged time step at t = 0\.004 s: a substep of 0\.0005 s "
+                                            r"failed .* after 3 halving\(s\) .* the state is left at t = 0\.004 s"):
+        dynamic.run(crushing, [0.0, 0.004, 0.01], lambda index, t, report: written.append(t))
+    assert written == [0.0, 0.004]
+    assert dynamic.time == pytest.approx(0.004)
+    assert global_max(problem.u.x.array) < 1e-6  # the state of t = 0.004 s: at rest
+
+
+def test_simulate_dynamic_plays_expressions_in_time(builtin_model_path, tmp_path):
+    """``simulate --dynamic``: the smile reached in 50 ms and held, frames at 60 Hz, one XDMF frame
+    and one summary row per frame; bad dynamic options stop it before any solve."""
+    folder = pathlib.Path(COMM.bcast(str(tmp_path), root=0))
+    common = ["simulate", "smile", "--model", str(builtin_model_path), "--dynamic", "--expression-time", "0.05"]
+    assert main([*common, "--out", str(folder / "smile")]) == 0
+    summary = json.loads((folder / "smile" / "summary.json").read_text())
+    frames = summary["frames"]
+    assert [row["frame"] for row in frames] == list(range(7))  # 0 to 0.1 s at 60 Hz
+    assert summary["failure"] is None and summary["dynamic"]["scheme"] == "newmark"
+    assert frames[0]["max_displacement_mm"] == 0.0 and frames[-1]["max_displacement_mm"] > 1.0
+    assert all(row["substeps"] == 4 for row in frames[1:])  # 1/60 s in steps of 1/240 s
+    assert (folder / "smile" / "face.xdmf").exists()
+    for option, message in ((["--time-step", "0"], "time_step = 0.0: give a positive number"),
+                            (["--density=-1e-6"], "density = -1e-06: give a positive number"),
+                            (["--expression-time", "0"], "--expression-time 0.0: give a positive number")):
+        with pytest.raises(SystemExit, match=message):
+            main([*common, *option, "--out", str(folder / "bad")])
+    assert not (folder / "bad").exists()

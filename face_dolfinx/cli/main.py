@@ -210,6 +210,91 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
     return rows
 
 
+def expression_sequence(model, expressions: list[str], seconds_each: float):
+    """``controls_at(t)`` and the duration of the named expressions played one after another, each
+    reached from the previous one (rest for the first) along a smooth ramp of ``seconds_each``,
+    the last one then held as long again (to watch the flesh settle)."""
+    from face_dolfinx.physics.problem import Controls
+    from face_dolfinx.model.bones import AffineMap
+    names = [None, *expressions]
+    keys = []
+    for name in names:
+        if name is None:
+            keys.append(Controls(np.zeros(len(model.muscles)), AffineMap(), AffineMap()))
+            continue
+        activations, jaw = _expression_controls(model, name)
+        vector = np.zeros(len(model.muscles))
+        for muscle, value in activations.items():
+            vector[model.muscle_index(muscle)] = value
+        keys.append(Controls(vector, AffineMap(), jaw))
+
+    def controls_at(t: float):
+        segment = min(int(t // seconds_each), len(expressions) - 1) if t > 0 else 0
+        s = min(max(t / seconds_each - segment, 0.0), 1.0)
+        return keys[segment].interpolate(keys[segment + 1], s * s * (3.0 - 2.0 * s))
+
+    return controls_at, (len(expressions) + 1) * seconds_each
+
+
+def simulate_dynamic(model, controls_at, times, out: pathlib.Path, settings, *, degree: int = 1,
+                     overwrite: bool = False, source: dict | None = None) -> list[dict]:
+    """Integrate the face in time (``FaceProblem.dynamics``) from the equilibrium of
+    ``controls_at(times[0])`` through ``times`` (s), one XDMF frame per time, into the results
+    folder ``out`` with summary.json. A time step that cannot converge ends the run with one
+    message after the folder is written with the frames before it (summary.json says where it
+    stopped). ``source``: what drove it, for summary.json."""
+    from face_dolfinx.equilibrium.dynamics import DynamicsError
+    from face_dolfinx.files import atomic_directory
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.results.xdmf import FaceWriter
+    comm = MPI.COMM_WORLD
+    times = np.asarray(times, dtype=float)
+    if times.size < 2 or np.any(np.diff(times) <= 0):
+        raise SystemExit("simulate --dynamic: the frame times must increase (two or more)")
+    problem = FaceProblem(model, degree=degree)
+    first = controls_at(float(times[0]))
+    problem.solve(activations=first.activations, cranium=first.cranium, jaw=first.jaw)
+    dynamic = problem.dynamics(settings)
+    dynamic.start(float(times[0]))
+    rows, failure = [], None
+    with atomic_directory(out, comm, overwrite=overwrite) as staging:
+        with FaceWriter(problem, staging / "face.xdmf") as writer:
+            def frame(index, t, report):
+                displacement = comm.allreduce(float(np.abs(problem.u.x.array).max(initial=0.0)), op=MPI.MAX)
+                rows.append(dict(frame=index, time_s=round(t, 6), substeps=report.substeps if report else 0,
+                                 newton_iterations=report.newton_iterations if report else 0,
+                                 seconds=round(report.seconds, 3) if report else 0.0,
+                                 max_displacement_mm=round(displacement, 4),
+                                 kinetic_energy_uJ=dynamic.kinetic_energy()))
+                writer.write(t)
+                if report is not None:
+                    log.info("t = %.4f s: %d substep(s), Newton %d its, %.2f s, max |u| %.2f mm", t, report.substeps,
+                             report.newton_iterations, report.seconds, displacement)
+
+            try:
+                dynamic.run(controls_at, times, frame)
+            except DynamicsError as error:
+                failure = str(error)
+        if comm.rank == 0:
+            (staging / "summary.json").write_text(json.dumps(
+                dict(model=str(model.path), dynamic=vars(settings), source=source or {}, frames=rows,
+                     ranks=comm.size, failure=failure,
+                     material=[override.describe() for override in model.material_overrides]), indent=2))
+    if failure is not None:
+        raise SystemExit(f"face-dolfinx simulate --dynamic: {failure}; {out} holds the {len(rows)} frames before it")
+    return rows
+
+
+def dynamic_settings(args):
+    """``DynamicSettings`` of the simulate options, or a usage error naming the option."""
+    from face_dolfinx.equilibrium.dynamics import DynamicsError, DynamicSettings
+    try:
+        return DynamicSettings(density=args.density, mass_damping=args.damping, viscosity=args.viscosity,
+                               scheme=args.scheme, time_step=args.time_step)
+    except DynamicsError as error:
+        raise SystemExit(f"face-dolfinx simulate --dynamic: {error}") from None
+
+
 def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -> list[dict]:
     """The contact object along ``poses`` (the first is where it stands), one solve and one face
     frame per pose; the object's surface as its own XDMF series (a fan of tetrahedra from its
@@ -560,6 +645,22 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="a rigid sphere (radius in mm) pressed against the skin along --path (docs/contact.md)")
     p.add_argument("--path", metavar="FILE",
                    help="the object's centre over time: one 'x y z' line (mm, model frame) per frame")
+    p.add_argument("--dynamic", action="store_true",
+                   help="integrate in time with inertia (docs/dynamics.md): the expressions one after another, "
+                        "each reached in --expression-time seconds, frames at --frame-rate")
+    p.add_argument("--expression-time", type=float, default=0.3, metavar="S",
+                   help="with --dynamic: seconds to reach each expression (default 0.3)")
+    p.add_argument("--frame-rate", type=float, default=60.0, metavar="HZ", help="with --dynamic: frames per second")
+    p.add_argument("--time-step", type=float, default=1.0 / 240.0, metavar="S",
+                   help="with --dynamic: the largest time step (default 1/240 s), halved where Newton fails")
+    p.add_argument("--scheme", choices=("newmark", "backward_euler"), default="newmark",
+                   help="with --dynamic: Newmark's average acceleration (no numerical damping) or backward Euler")
+    p.add_argument("--density", type=float, default=1e-6, metavar="KG_PER_MM3",
+                   help="with --dynamic: tissue density (default 1e-6 kg/mm^3 = 1000 kg/m^3)")
+    p.add_argument("--damping", type=float, default=0.0, metavar="ALPHA",
+                   help="with --dynamic: mass-proportional damping (1/s)")
+    p.add_argument("--viscosity", type=float, default=0.0, metavar="ETA",
+                   help="with --dynamic: Kelvin-Voigt viscosity of the flesh (kPa s)")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     p = sub.add_parser("demo", help="the main job: build the face, synthesise a take, fit it",
@@ -765,6 +866,8 @@ def _main(argv=None) -> int:
         fit(model, args)
         return 0
     out = pathlib.Path(args.out)
+    if args.dynamic:
+        return _simulate_dynamic_expressions(model, args, out)
     contact = _object_from_args(args)
     try:
         rows = simulate(model, args.expressions, out, degree=args.degree, overwrite=args.overwrite,
@@ -775,6 +878,26 @@ def _main(argv=None) -> int:
         raise SystemExit(str(error)) from None
     if MPI.COMM_WORLD.rank == 0:
         print(f"results: {out.resolve()} ({len(rows)} expressions; face.xdmf for ParaView, PNG renders)")
+    return 0
+
+
+def _simulate_dynamic_expressions(model, args, out: pathlib.Path) -> int:
+    """``simulate --dynamic``: the named expressions played in time (``simulate_dynamic``)."""
+    if args.object or args.path or args.coarse:
+        raise SystemExit("simulate --dynamic: --object, --path and --coarse are for quasistatic simulation")
+    settings = dynamic_settings(args)
+    if not (math.isfinite(args.expression_time) and args.expression_time > 0):
+        raise SystemExit(f"simulate --dynamic: --expression-time {args.expression_time}: give a positive number of seconds")
+    if not (math.isfinite(args.frame_rate) and args.frame_rate > 0):
+        raise SystemExit(f"simulate --dynamic: --frame-rate {args.frame_rate}: give a positive rate (Hz)")
+    for name in args.expressions:  # fail before any work
+        _expression_controls(model, name)
+    controls_at, duration = expression_sequence(model, args.expressions, args.expression_time)
+    times = np.arange(0.0, duration + 0.5 / args.frame_rate, 1.0 / args.frame_rate)
+    rows = simulate_dynamic(model, controls_at, times, out, settings, degree=args.degree, overwrite=args.overwrite,
+                            source=dict(expressions=args.expressions, expression_time_s=args.expression_time))
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"results: {out.resolve()} ({len(rows)} frames; face.xdmf for ParaView)")
     return 0
 
 
