@@ -49,13 +49,17 @@ def motions(model, problem) -> dict:
         s = min(t / 0.15, 1.0)
         return Controls(s * s * (3 - 2 * s) * smile, rest.cranium, rest.jaw)
 
+    def onset(t):  # the periodic motions start from rest, taking 0.1 s to reach their amplitude
+        s = min(t / 0.1, 1.0)
+        return s * s * (3 - 2 * s)
+
     def shake(t):  # +-12 degrees about the vertical at 2.5 Hz
-        return Controls(rest.activations, rotation_about_y(math.radians(12.0) * math.sin(2 * math.pi * 2.5 * t),
-                                                          pivot), rest.jaw)
+        angle = math.radians(12.0) * onset(t) * math.sin(2 * math.pi * 2.5 * t)
+        return Controls(rest.activations, rotation_about_y(angle, pivot), rest.jaw)
 
     def jog(t):  # 15 mm up and down at 2.5 Hz (0.37 g peak)
-        return Controls(rest.activations, AffineMap(np.eye(3), [0.0, 15.0 * math.sin(2 * math.pi * 2.5 * t), 0.0]),
-                        rest.jaw)
+        height = 15.0 * onset(t) * math.sin(2 * math.pi * 2.5 * t)
+        return Controls(rest.activations, AffineMap(np.eye(3), [0.0, height, 0.0]), rest.jaw)
 
     return {"expression": (0.3, expression), "shake": (0.4, shake), "jog": (0.4, jog)}
 

@@ -114,13 +114,13 @@ def test_first_bending_mode_of_a_cantilever():
     tip &= owned
     count = COMM.allreduce(int(tip.sum()), op=MPI.SUM)
     heights = []
-    dynamic.run(lambda t: rest, np.arange(0.0, 1.3 * period, dt), lambda index, t, report: heights.append(
+    dynamic.run(lambda t: rest, np.arange(0.0, 2.6 * period, dt), lambda index, t, report: heights.append(
         COMM.allreduce(float(problem.u.x.array.reshape(-1, 3)[tip, 2].sum()), op=MPI.SUM) / count))
     heights = np.array(heights)
     assert 0.1 < abs(heights[0]) < 5.0  # mm: a small swing of the 100 mm bar
     crossing = np.flatnonzero(np.sign(heights[1:]) != np.sign(heights[:-1]))
     times = (crossing + heights[crossing] / (heights[crossing] - heights[crossing + 1])) * dt
-    assert len(times) >= 3
+    assert len(times) >= 5  # four half periods: the second mode's share averages out
     measured = 2 * np.mean(np.diff(times))
     assert measured == pytest.approx(period, rel=0.02)
 

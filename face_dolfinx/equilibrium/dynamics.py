@@ -46,6 +46,8 @@ log = logging.getLogger(__name__)
 SCHEMES = ("newmark", "backward_euler")
 # Newmark's average acceleration.
 NEWMARK_BETA, NEWMARK_GAMMA = 0.25, 0.5
+# The bones' velocity and acceleration: differences over this fraction of the time step.
+BONE_RATE_STEP = 1e-3
 # Soft tissue, 1000 kg/m^3, in kg/mm^3 (forms.inertia: the time unit is then the second).
 TISSUE_DENSITY = 1e-6
 
@@ -152,14 +154,16 @@ class DynamicFace:
         self.time = 0.0
         self._substep = settings.time_step
         self._mass_form, self._kinetic_form = mass_form, kinetic_energy_form
+        self._begun = False
         self.start()
 
     # -- state -------------------------------------------------------------------------------
     def start(self, time: float = 0.0, velocity: np.ndarray | None = None) -> None:
         """Start at ``time`` from the problem's current displacement and controls, with
-        ``velocity`` (local dof array; default at rest) and the acceleration that balances the
-        forces there (M a = -R(u) - C v on the free dofs; zero where the shape is an equilibrium
-        at rest; the bones start unaccelerated)."""
+        ``velocity`` (local dof array; default at rest). The first step takes the bones' velocity
+        and acceleration from its controls and the flesh's acceleration from the balance of forces
+        (``_begin``): an equilibrium at rest starts unaccelerated, a released shape with the
+        acceleration that its unbalanced forces give."""
         if not math.isfinite(time):
             raise DynamicsError(f"start time {time!r}: give a finite number of seconds")
         u = self.problem.u.x.array
@@ -168,7 +172,28 @@ class DynamicFace:
         self.levels.acceleration.x.array[:] = 0.0
         self.time = float(time)
         self._substep = self.settings.time_step
+        self._begun = False
+
+    def _set_bone_rates(self, controls_at, t: float, direction: float) -> None:
+        """Velocity and acceleration of the bone-attached dofs at ``t`` from their prescribed
+        motion, by one-sided differences over ``BONE_RATE_STEP`` of the time step, forwards
+        (``direction`` 1, at the start) or backwards (-1): the scheme's own formulas applied to
+        prescribed displacements carry any error (e.g. a start at rest of bones already moving)
+        from step to step, alternating in sign, without decay."""
+        h = direction * BONE_RATE_STEP * self.settings.time_step
+        positions = []
+        for k in range(3):
+            controls = controls_at(t + k * h)
+            positions.append(self.problem.bone_positions(controls.cranium, controls.jaw))
+        p0, p1, p2 = positions
+        blocks = self.problem.bone_blocks
+        self.levels.velocity.x.array.reshape(-1, 3)[blocks] = (-3.0 * p0 + 4.0 * p1 - p2) / (2.0 * h)
+        self.levels.acceleration.x.array.reshape(-1, 3)[blocks] = (p0 - 2.0 * p1 + p2) / (h * h)
+
+    def _begin(self, controls_at) -> None:
+        self._set_bone_rates(controls_at, self.time, 1.0)
         self._balance_acceleration()
+        self._begun = True
 
     def _assembled(self, form) -> PETSc.Vec:
         vector = fem_petsc.create_vector(form)
@@ -180,8 +205,9 @@ class DynamicFace:
         return vector
 
     def _balance_acceleration(self) -> None:
-        """a = -M^-1 (R(u) + C v) on the free dofs, 0 on the bones (the residual form of a step
-        with every scheme coefficient zero but d1 = 1 is R(u) + C v)."""
+        """The free dofs' acceleration from M a = -(R(u) + C v), the bones' acceleration (set) on
+        the right-hand side (the residual form of a step with every scheme coefficient zero but
+        d1 = 1 is R(u) + C v)."""
         saved = self.levels.values.copy()
         for constant, value in zip(self.levels.coefficients, (0.0, 0.0, 0.0, 0.0, 1.0, 0.0)):
             constant.value = value
@@ -189,6 +215,18 @@ class DynamicFace:
         for constant, value in zip(self.levels.coefficients, saved):
             constant.value = value
         force.scale(-1.0)
+        acceleration = self.levels.acceleration.vector
+        bones = acceleration.duplicate()  # the bones' acceleration alone
+        acceleration.copy(bones)
+        fem_petsc.set_bc(bones, self.problem.bcs, scale=0.0)
+        bones.axpy(-1.0, acceleration)
+        bones.scale(-1.0)
+        full_mass = fem_petsc.assemble_matrix(self._mass_form)
+        full_mass.assemble()
+        coupling = force.duplicate()
+        full_mass.mult(bones, coupling)
+        force.axpy(-1.0, coupling)
+        fem_petsc.set_bc(force, self.problem.bcs, scale=0.0)
         mass = fem_petsc.assemble_matrix(self._mass_form, bcs=self.problem.bcs)
         mass.assemble()
         ksp = PETSc.KSP().create(self.comm)
@@ -196,13 +234,15 @@ class DynamicFace:
         ksp.setType("cg")
         ksp.getPC().setType("jacobi")
         ksp.setTolerances(rtol=1e-12, atol=1e-30, max_it=2000)
-        acceleration = self.levels.acceleration.vector
-        ksp.solve(force, acceleration)
+        free = force.duplicate()
+        ksp.solve(force, free)
         if ksp.getConvergedReason() < 0:
             raise DynamicsError(f"the initial acceleration (mass matrix solve) did not converge "
                                 f"({ksp.getConvergedReason()})")
+        free.axpy(1.0, bones)  # the solve gave 0 on the bone rows
+        free.copy(acceleration)
         acceleration.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-        for item in (ksp, mass, force):
+        for item in (ksp, mass, full_mass, force, coupling, bones, free):
             item.destroy()
 
     def kinetic_energy(self) -> float:
@@ -228,7 +268,13 @@ class DynamicFace:
         old_controls = problem.controls.copy()
         levels.set_step(self.settings.scheme, dt)
         start = levels.displacement.x.array
-        guess = start + dt * levels.velocity.x.array + 0.5 * dt * dt * levels.acceleration.x.array
+        # The last shape carried along the cranium's motion, as the quasistatic solve starts (a
+        # Taylor extrapolation with the last acceleration, which keeps the stiff modes' ringing
+        # under average acceleration, started the 5K face's head shake at residuals of 1e6 mN
+        # and needed halved steps; this start took 6 Newton iterations a step).
+        change = controls.cranium.compose(old_controls.cranium.inverse())
+        X = problem.dof_coordinates
+        guess = (change.apply(X + start.reshape(-1, 3)) - X).reshape(-1)
         guard = problem.solver.inversion_guard
         fraction = guard.step_fraction(start, start - guess) if guard is not None else 1.0
         problem.u.x.array[:] = start + fraction * (guess - start)
@@ -249,12 +295,15 @@ class DynamicFace:
         largest = self.settings.time_step
         smallest_allowed = largest * 0.5 ** self.settings.max_halvings
         substeps, newton, smallest, halvings = 0, 0, math.inf, 0
+        if not self._begun:
+            self._begin(controls_at)
         while end - self.time > 1e-9 * largest:
             dt = min(self._substep, end - self.time)
             ok, iterations, why = self.step(controls_at(self.time + dt), dt)
             newton += iterations
             if ok:
                 self.time = end if end - (self.time + dt) <= 1e-9 * largest else self.time + dt
+                self._set_bone_rates(controls_at, self.time, -1.0)
                 substeps += 1
                 smallest = min(smallest, dt)
                 self._substep = min(2.0 * self._substep, largest)
