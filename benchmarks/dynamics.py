@@ -30,7 +30,7 @@ from face_dolfinx.model.regions import MaterialOverride, Region  # noqa: E402
 from face_dolfinx.physics.problem import Controls, FaceProblem  # noqa: E402
 
 FRAME_RATE = 60.0
-SOFT_FACTOR = 0.05  # the softened nose and cheeks: 1/20 of the model's flesh stiffness
+SOFT_FACTOR = 0.01  # the softened nose and cheeks: 1/100 of the model's flesh stiffness
 
 
 def rotation_about_y(angle: float, pivot: np.ndarray) -> AffineMap:

@@ -1,5 +1,5 @@
 #!/bin/bash
-# Every benchmark of docs/performance.md, docs/ladder.md and docs/stability.md, one after the other
+# Every benchmark of docs/performance.md, docs/ladder.md, docs/stability.md and docs/dynamics.md, one after the other
 # (they time themselves: run nothing else meanwhile). Each result goes to benchmarks/results/<study>/
 # under the name the docs cite, with an entry in that folder's manifest.json (commit, command,
 # machine, date, tets, ranks; benchmarks/provenance.py); bulky fit folders and takes go to runs/.
@@ -65,3 +65,7 @@ $PYTHON benchmarks/stability.py --collect $RESULTS/stability/{forward_5k-20k,ram
   --plot docs/img/stability > runs/stability_tables.md
 # The model ladder (writes its own tables and figures).
 benchmarks/run_ladder.sh
+# Dynamic against quasistatic re-simulation (docs/dynamics.md): 5K face, substeps of 1/240 and 1/60 s.
+$PYTHON benchmarks/dynamics.py --tets 5000 --out $RESULTS/dynamics/dynamics_5k.jsonl --plot docs/img/dynamics_5k.png
+$PYTHON benchmarks/dynamics.py --tets 5000 --time-step 0.016666666666666666 \
+  --out $RESULTS/dynamics/dynamics_5k_step60hz.jsonl

@@ -62,8 +62,9 @@ def test_a_uniform_model_keeps_its_forms_to_the_bit():
 def test_softening_everything_equals_doubling_the_activation():
     """Psi = s (flesh + passive) + a active has the equilibrium of flesh + passive + (a / s) active:
     the whole slab at half stiffness and activation 0.3 moves as the plain slab at 0.6."""
-    soft = FaceProblem(overridden(slab_model(), f"{WHOLE_SLAB}:all=0.5"))
-    plain = FaceProblem(slab_model())
+    model = slab_model()  # one mesh, one partition for both
+    soft = FaceProblem(overridden(model, f"{WHOLE_SLAB}:all=0.5"))
+    plain = FaceProblem(model)
     soft.solve(activations=[0.3, 0.2, 0.1])
     plain.solve(activations=[0.6, 0.4, 0.2])
     assert global_max(plain.u.x.array) > 1.0
@@ -92,18 +93,19 @@ def test_a_soft_half_takes_two_thirds_of_a_stretch():
 def test_the_energy_is_affine_in_each_factor_and_local_to_the_region(parameter):
     """At one deformed shape the strain energy grows linearly with each parameter's factor (every
     law is linear in its modulus), and a region's factor acts on its cells only."""
-    base = FaceProblem(slab_model())
+    model = slab_model()  # one mesh, one partition for all
+    base = FaceProblem(model)
     base.solve(activations=[0.0, 0.0, 0.0], jaw=AffineMap(np.eye(3), np.array([6.0, 0.0, 2.0])))
     shape = base.u.x.array.copy()
     energies = {}
     for factor in (1.0, 2.0, 3.0):
-        problem = FaceProblem(overridden(slab_model(), f"{LEFT_HALF}:{parameter}={factor}"))
+        problem = FaceProblem(overridden(model, f"{LEFT_HALF}:{parameter}={factor}"))
         problem.adopt(base.controls, shape)
         energies[factor] = problem.energy()
     assert energies[1.0] == pytest.approx(base.energy(), rel=1e-12)
     assert energies[2.0] > energies[1.0] * 1.001  # the stretched passive fibres too
     assert energies[3.0] - energies[1.0] == pytest.approx(2.0 * (energies[2.0] - energies[1.0]), rel=1e-9)
-    everywhere = FaceProblem(overridden(slab_model(), f"{WHOLE_SLAB}:{parameter}=2"))
+    everywhere = FaceProblem(overridden(model, f"{WHOLE_SLAB}:{parameter}=2"))
     everywhere.adopt(base.controls, shape)
     assert everywhere.energy() - energies[1.0] > 1.2 * (energies[2.0] - energies[1.0])
 
