@@ -22,7 +22,8 @@ from mpi4py import MPI
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent))
-from face_dolfinx.equilibrium.dynamics import DynamicSettings  # noqa: E402
+from face_dolfinx.equilibrium.dynamics import DynamicsError, DynamicSettings  # noqa: E402
+from face_dolfinx.equilibrium.solver import EquilibriumError  # noqa: E402
 from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
 from face_dolfinx.model.bones import AffineMap  # noqa: E402
 from face_dolfinx.model.folder import load_model  # noqa: E402
@@ -111,7 +112,13 @@ def run(model_path, tissue: str, motion: str, comm, time_step: float, write) -> 
         rows.append(row)
         write(row)
 
-    dynamic.run(controls_at, times, frame)
+    try:
+        dynamic.run(controls_at, times, frame)
+    except (DynamicsError, EquilibriumError) as error:  # recorded; the other variants still run
+        failure = dict(summary=True, tets=model.mesh.topology.index_map(3).size_global, ranks=comm.size,
+                       tissue=tissue, motion=motion, time_step_s=time_step, frames=len(rows), failed=str(error))
+        write(failure)
+        return dict(rows=rows, summary=failure)
     moving = [row for row in rows if row["frame"] > 0]
     summary = dict(summary=True, tets=rows[0]["tets"], ranks=comm.size, tissue=tissue, motion=motion,
                    time_step_s=time_step, frames=len(rows),
@@ -136,7 +143,7 @@ def plot(results: list[dict], path: pathlib.Path, noise: float) -> None:
     figure, axes = plt.subplots(1, len(motions_seen), figsize=(4.2 * len(motions_seen), 3.4), squeeze=False)
     for axis, motion in zip(axes[0], motions_seen):
         for result in results:
-            if result["summary"]["motion"] != motion:
+            if result["summary"]["motion"] != motion or "failed" in result["summary"]:
                 continue
             rows = result["rows"]
             axis.plot([r["time_s"] for r in rows], [r["marker_difference_mm"] for r in rows],
