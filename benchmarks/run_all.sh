@@ -65,7 +65,13 @@ $PYTHON benchmarks/stability.py --collect $RESULTS/stability/{forward_5k-20k,ram
   --plot docs/img/stability > runs/stability_tables.md
 # The model ladder (writes its own tables and figures).
 benchmarks/run_ladder.sh
-# Dynamic against quasistatic re-simulation (docs/dynamics.md): 5K face, substeps of 1/240 and 1/60 s.
+# Dynamic against quasistatic re-simulation (docs/dynamics.md): 5K and 20K faces, substeps of 1/240, 1/60 and 1/960 s.
 $PYTHON benchmarks/dynamics.py --tets 5000 --out $RESULTS/dynamics/dynamics_5k.jsonl --plot docs/img/dynamics_5k.png
 $PYTHON benchmarks/dynamics.py --tets 5000 --time-step 0.016666666666666666 \
   --out $RESULTS/dynamics/dynamics_5k_step60hz.jsonl
+$PYTHON benchmarks/dynamics.py --tets 5000 --motions expression --tissues soft --time-step 0.0010416666666666667 \
+  --out $RESULTS/dynamics/dynamics_5k_soft_expression_step960hz.jsonl
+$PYTHON benchmarks/dynamics.py --tets 20000 --motions expression shake --tissues model \
+  --out $RESULTS/dynamics/dynamics_20k.jsonl --plot docs/img/dynamics_20k.png
+$PYTHON benchmarks/dynamics.py --tets 20000 --motions expression shake --tissues model --time-step 0.016666666666666666 \
+  --out $RESULTS/dynamics/dynamics_20k_step60hz.jsonl
