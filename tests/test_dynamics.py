@@ -238,3 +238,20 @@ def test_simulate_dynamic_plays_expressions_in_time(builtin_model_path, tmp_path
         with pytest.raises(SystemExit, match=message):
             main([*common, *option, "--out", str(folder / "bad")])
     assert not (folder / "bad").exists()
+
+
+def test_simulate_animation_dynamic(builtin_model_path, tmp_path):
+    """``simulate --animation FILE --dynamic``: an animation's controls integrated in time, one frame
+    at each of its times."""
+    folder = pathlib.Path(COMM.bcast(str(tmp_path), root=0))
+    animation = folder / "smile.toml"
+    if COMM.rank == 0:
+        animation.write_text("frame_rate = 20\nduration = 0.15\n[muscles.zygomaticus_major_left]\n"
+                             "times = [0.0, 0.1]\nvalues = [0.0, 0.6]\n")
+    COMM.barrier()
+    assert main(["simulate", "--animation", str(animation), "--dynamic", "--model", str(builtin_model_path),
+                 "--time-step", "0.025", "--out", str(folder / "played")]) == 0
+    summary = json.loads((folder / "played" / "summary.json").read_text())
+    assert [row["time_s"] for row in summary["frames"]] == [0.0, 0.05, 0.1, 0.15]
+    assert all(row["substeps"] == 2 for row in summary["frames"][1:])
+    assert summary["frames"][-1]["max_displacement_mm"] > 1.0 and summary["failure"] is None

@@ -4,12 +4,17 @@ Subcommands:
   build     generate the built-in face at a resolution and print the model folder; with --subject
             (a capture) or --surface (a scan), the face adapted to a subject
   simulate  equilibrium shapes for named expressions -> XDMF + PNG; with --object and --path, a
-            rigid object moved along a path against the face (docs/contact.md)
+            rigid object moved along a path against the face (docs/contact.md); with --animation,
+            an animation or fit played back into a results folder (docs/animation.md)
   synth     a synthetic take of known truth (markers with noise, outliers, gaps) -> TRC/CSV/C3D
   fit       a take -> activations, head and jaw motion per frame (resumable), tables and report;
             a capture of your own is aligned to the model first (--correspondence, or ICP)
   report    (re)build the plots, rendered frames and ParaView series of a fit folder
+  edit      edit a fit or animation in activation space (in-betweens, exaggeration, splices,
+            keyframes, smoothing) -> an animation CSV for simulate --animation
   demo      the README's main job: build the face, synthesise a take, fit it
+  retarget  a fit's (or an animation's) activations, head and jaw motion carried onto another model:
+            an animation file for simulate --animation (docs/retargeting.md)
 Every subcommand takes --config FILE.toml (docs/cli.md).
 """
 import argparse
@@ -237,12 +242,14 @@ def expression_sequence(model, expressions: list[str], seconds_each: float):
 
 
 def simulate_dynamic(model, controls_at, times, out: pathlib.Path, settings, *, degree: int = 1,
-                     overwrite: bool = False, source: dict | None = None) -> list[dict]:
+                     overwrite: bool = False, intraoral_pressure: bool = False,
+                     source: dict | None = None) -> list[dict]:
     """Integrate the face in time (``FaceProblem.dynamics``) from the equilibrium of
     ``controls_at(times[0])`` through ``times`` (s), one XDMF frame per time, into the results
     folder ``out`` with summary.json. A time step that cannot converge ends the run with one
     message after the folder is written with the frames before it (summary.json says where it
-    stopped). ``source``: what drove it, for summary.json."""
+    stopped). ``intraoral_pressure``: the controls carry a pressure. ``source``: what drove it, for
+    summary.json."""
     from face_dolfinx.equilibrium.dynamics import DynamicsError
     from face_dolfinx.files import atomic_directory
     from face_dolfinx.physics.problem import FaceProblem
@@ -251,9 +258,13 @@ def simulate_dynamic(model, controls_at, times, out: pathlib.Path, settings, *, 
     times = np.asarray(times, dtype=float)
     if times.size < 2 or np.any(np.diff(times) <= 0):
         raise SystemExit("simulate --dynamic: the frame times must increase (two or more)")
-    problem = FaceProblem(model, degree=degree)
+    try:  # the model may lack what the controls need (an 'oral' surface for a pressure)
+        problem = FaceProblem(model, degree=degree, intraoral_pressure=intraoral_pressure)
+    except ValueError as error:
+        raise SystemExit(f"face-dolfinx simulate --dynamic: {error}") from None
     first = controls_at(float(times[0]))
-    problem.solve(activations=first.activations, cranium=first.cranium, jaw=first.jaw)
+    problem.solve(activations=first.activations, cranium=first.cranium, jaw=first.jaw,
+                  pressure=first.pressure if intraoral_pressure else None)
     dynamic = problem.dynamics(settings)
     dynamic.start(float(times[0]))
     rows, failure = [], None
@@ -293,6 +304,190 @@ def dynamic_settings(args):
                                scheme=args.scheme, time_step=args.time_step)
     except DynamicsError as error:
         raise SystemExit(f"face-dolfinx simulate --dynamic: {error}") from None
+
+
+def simulate_animation(model, args) -> None:
+    """Play an animation (a CSV or TOML file, or a fit or simulation results folder) on the model
+    into a results folder like a fit's, resumable frame by frame
+    (``face_dolfinx.animation.playback``)."""
+    from face_dolfinx.animation.playback import animation_and_markers, open_playback, play
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.results.folder import FitFolderError
+    # Every input is checked before the result folder exists: a bad input leaves nothing behind.
+    animation, markers = animation_and_markers(args.animation)
+    if args.stop_after is not None and args.stop_after < 1:
+        raise SystemExit(f"--stop-after {args.stop_after}: give 1 or more")
+    animation.check(model)
+    start = time.perf_counter()
+    try:  # the model may lack what the animation needs (an 'oral' surface for its pressure)
+        problem = FaceProblem(model, degree=args.degree, intraoral_pressure=animation.has_pressure,
+                              newton_tolerance=args.newton_tolerance, reuse_factorization=args.reuse_factorization)
+    except ValueError as error:
+        raise SystemExit(f"face-dolfinx: error: {animation.source}: {error}") from None
+    setup = time.perf_counter() - start
+    try:
+        folder, markers = open_playback(model, animation, args.out, markers=markers, overwrite=args.overwrite,
+                                        extra=dict(degree=args.degree, strength=args.strength,
+                                                   newton_tolerance=args.newton_tolerance,
+                                                   reuse_factorization=args.reuse_factorization))
+    except FitFolderError as error:
+        raise SystemExit(str(error)) from None
+    if folder.finished:
+        log.info("%s already holds this simulation, finished: nothing to do (--overwrite simulates again)",
+                 folder.path)
+        return
+    _setup_logging(folder.path, verbose=args.verbose)
+    log.info("model %s: %d tets, %d muscles; animation %s: %d frames, %.3g s; set-up %.1f s", model.name,
+             model.mesh.topology.index_map(3).size_global, problem.num_muscles, animation.source,
+             animation.n_frames, animation.times[-1] - animation.times[0], setup)
+    run = play(problem, animation, folder, markers, stop_after=args.stop_after)
+    if run.seconds:
+        log.info("%d frames: Newton %d its per frame (median), %.2f s per frame (median)", len(run.frames),
+                 int(np.median(run.newton_iterations)), float(np.median(run.seconds)))
+    if not run.finished:
+        log.info("%d frames still to simulate; rerun the same command to continue %s", len(run.missing),
+                 folder.path)
+        return
+    log.info("results: %s (plots: *.png and renders/; ParaView: face.xdmf; run.py video %s)",
+             folder.path.resolve(), folder.path)
+
+
+def retarget_animation(args) -> None:
+    """Carry an animation (a fit or simulation results folder, a CSV or TOML file) onto another
+    model: an animation file that ``simulate --animation`` plays, and the record of what was
+    mapped, dropped and clamped beside it (``face_dolfinx.animation.retarget``). Runs on rank 0."""
+    from face_dolfinx.animation import Animation
+    from face_dolfinx.animation.retarget import (RetargetError, record_path, retarget, source_model_path,
+                                                 write_record)
+    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.model.folder import read_model_arrays
+    if not args.animation or not args.out:
+        raise SystemExit("retarget: give the fit folder or animation file and --out FILE.csv")
+    out = pathlib.Path(args.out)
+    # Every input is checked before anything is written: a bad input leaves nothing behind.
+    if out.suffix.lower() != ".csv":
+        raise SystemExit(f"--out {out}: an animation is written as a .csv table")
+    if not args.overwrite and (out.exists() or record_path(out).exists()):
+        raise SystemExit(f"--out {out} exists; pass --overwrite to replace it")
+    source_path = pathlib.Path(args.source_model) if args.source_model else source_model_path(args.animation)
+    if source_path is None:
+        raise SystemExit(f"{args.animation}: an animation file does not name the model it was made for; "
+                         f"give --source-model FOLDER")
+    target_path = pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets)
+
+    def carry():
+        animation = Animation.read(args.animation)
+        source = read_model_arrays(source_path, check=False)
+        target = read_model_arrays(target_path, check=False)
+        moved, record = retarget(animation, source, target, target_label=str(target_path))
+        record["source_model"] = str(source_path)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        moved.write(out)
+        write_record(out, record)
+        return record
+
+    try:
+        record = on_rank_0(carry, MPI.COMM_WORLD)
+    except RetargetError as error:
+        raise SystemExit(f"face-dolfinx: error: {error}") from None
+    muscles = record["muscles"]
+    log.info("retargeted %d frames onto %s: %d muscles mapped, %d dropped, %d held at rest; head scale %.4g "
+             "(RMS %.3g mm over %d points); animation %s, record %s", record["frames"], target_path,
+             len(muscles["mapped"]), len(muscles["dropped"]), len(muscles["held_at_rest"]),
+             record["head"]["scale"], record["head"]["rms_mm"], len(record["head"]["points"]), out,
+             record_path(out))
+
+
+def animation_source(text: str, model=None):
+    """An animation or pose named on the command line: ``PATH`` (a CSV or TOML file, a results
+    folder), ``PATH@T`` (its pose at T seconds), ``PATH#N`` (its frame N), or ``expression:NAME``
+    (the model's named expression; needs ``model``)."""
+    from face_dolfinx.animation import Animation, AnimationError
+    if text.startswith("expression:"):
+        if model is None:
+            raise AnimationError(f"{text}: an expression needs the model that defines it (give --model or --tets)")
+        return Animation.from_expression(model, text.partition(":")[2])
+    for mark in ("@", "#"):
+        path, found, where = text.rpartition(mark)
+        if found and path and not pathlib.Path(text).exists():
+            try:
+                value = float(where) if mark == "@" else int(where)
+            except ValueError:
+                raise AnimationError(f"{text}: give PATH{mark}{'SECONDS' if mark == '@' else 'FRAME'}") from None
+            animation = Animation.read(path)
+            if mark == "@":
+                return animation.at(value)
+            if not 0 <= value < animation.n_frames:
+                raise AnimationError(f"{text}: frame {value} of the {animation.n_frames} frames of {path}")
+            return animation.at(float(animation.times[value]))
+    return Animation.read(text)
+
+
+def splice_part(text: str):
+    """A splice part: ``PATH[@START:STOP][xSPEED]`` -> (animation, start, stop, speed)."""
+    from face_dolfinx.animation import Animation, AnimationError
+    path, found, spec = text.rpartition("@")
+    if not found or pathlib.Path(text).exists():
+        return Animation.read(text), None, None, 1.0
+    window, _, speed = spec.partition("x")
+    start, colon, stop = window.partition(":")
+    try:
+        if window and not colon:
+            raise ValueError
+        values = [float(v) if v.strip() else None for v in (start, stop)] + [float(speed) if speed else 1.0]
+    except ValueError:
+        raise AnimationError(f"{text}: give PATH@START:STOP (seconds, either may be left out), optionally "
+                             f"followed by xSPEED") from None
+    return (Animation.read(path), *values)
+
+
+def edit(args) -> None:
+    """``run.py edit OPERATION``: an edited animation (``face_dolfinx.animation.editing``) -> a
+    CSV that ``simulate --animation`` plays."""
+    from face_dolfinx.animation import editing
+    from face_dolfinx.model.folder import load_model
+    from face_dolfinx.model.anatomy import build_builtin_face
+    out = pathlib.Path(args.out)
+    if out.suffix.lower() != ".csv":
+        raise SystemExit(f"--out {out}: an edited animation is written as a .csv table")
+    if out.exists() and not args.overwrite:
+        raise SystemExit(f"{out} already exists; pass --overwrite to replace it")
+    model = None
+    if args.model or args.tets:
+        model = load_model(pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets),
+                           MPI.COMM_WORLD)
+    if args.operation == "between":
+        result = editing.between(animation_source(args.first, model), animation_source(args.second, model),
+                                 args.frames, args.duration)
+    elif args.operation == "scale":
+        about = animation_source(args.about, model) if args.about else None
+        result = editing.scaled(animation_source(args.source, model), args.factor, about)
+    elif args.operation == "splice":
+        parts = [editing.segment(animation, start, stop, speed, args.frame_rate)
+                 for animation, start, stop, speed in map(splice_part, args.parts)]
+        result = editing.splice(parts, args.transition)
+    elif args.operation == "keyframes":
+        times, values = keyframe_option(args.keys)
+        result = editing.with_keyframes(animation_source(args.source, model), args.muscle, times, values,
+                                        blend=args.blend, interpolation=args.interpolation)
+    else:
+        result = editing.smoothed(animation_source(args.source, model), args.time_constant, args.method)
+    if model is not None:
+        result.check(model)
+    on_rank_0(lambda: result.write(out), MPI.COMM_WORLD)
+    log.info("%s: %d frames, %.3g s, %d muscles named (from %s)", out, result.n_frames,
+             result.times[-1] - result.times[0], len(result.muscle_names), result.source)
+
+
+def keyframe_option(text: str) -> tuple[list[float], list[float]]:
+    """``--keys T=V,T=V,...`` -> (times, values)."""
+    pairs = [item.partition("=") for item in filter(None, (p.strip() for p in text.split(",")))]
+    try:
+        if not pairs or any(not sep for _, sep, _ in pairs):
+            raise ValueError
+        return [float(t) for t, _, _ in pairs], [float(v) for _, _, v in pairs]
+    except ValueError:
+        raise SystemExit(f"--keys {text}: give TIME=ACTIVATION pairs, comma-separated, e.g. 0.5=0.8,1.2=0") from None
 
 
 def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -> list[dict]:
@@ -589,6 +784,7 @@ def _render_expression(problem, path: pathlib.Path, title: str) -> None:
 def main(argv=None) -> int:
     """Run a command line; errors in what the user gave (files, options) end it with one message."""
     from face_dolfinx.alignment.similarity import AlignmentError
+    from face_dolfinx.animation import AnimationError
     from face_dolfinx.capture import CaptureError
     from .config import ConfigError
     from face_dolfinx.model.folder import ModelError
@@ -596,7 +792,8 @@ def main(argv=None) -> int:
     from face_dolfinx.tracking import MarkerSetupError
     try:
         return _main(argv)
-    except (AlignmentError, CaptureError, ConfigError, MarkerSetupError, ModelError, SubjectError) as error:
+    except (AlignmentError, AnimationError, CaptureError, ConfigError, MarkerSetupError, ModelError,
+            SubjectError) as error:
         raise SystemExit(f"face-dolfinx: error: {error}") from None
 
 
@@ -646,8 +843,9 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--path", metavar="FILE",
                    help="the object's centre over time: one 'x y z' line (mm, model frame) per frame")
     p.add_argument("--dynamic", action="store_true",
-                   help="integrate in time with inertia (docs/dynamics.md): the expressions one after another, "
-                        "each reached in --expression-time seconds, frames at --frame-rate")
+                   help="integrate in time with inertia (docs/dynamics.md): the --animation, one frame at each of "
+                        "its times, or the expressions one after another, each reached in --expression-time "
+                        "seconds, frames at --frame-rate")
     p.add_argument("--expression-time", type=float, default=0.3, metavar="S",
                    help="with --dynamic: seconds to reach each expression (default 0.3)")
     p.add_argument("--frame-rate", type=float, default=60.0, metavar="HZ", help="with --dynamic: frames per second")
@@ -661,7 +859,78 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="with --dynamic: mass-proportional damping (1/s)")
     p.add_argument("--viscosity", type=float, default=0.0, metavar="ETA",
                    help="with --dynamic: Kelvin-Voigt viscosity of the flesh (kPa s)")
+    p.add_argument("--animation", metavar="FILE|FOLDER",
+                   help="play an animation: a CSV or TOML file (docs/animation.md) or a fit or simulation "
+                        "results folder; writes a results folder like a fit's, resumable frame by frame")
+    p.add_argument("--stop-after", type=int, metavar="N",
+                   help="with --animation: stop after N frames, leaving the folder unfinished; the same "
+                        "command without it continues where this one stopped")
+    p.add_argument("--newton-tolerance", type=float, default=1e-8, metavar="MM",
+                   help="with --animation: Newton stops once a correction moves no node further than this "
+                        "(default 1e-8 mm)")
+    p.add_argument("--reuse-factorization", action="store_true",
+                   help="with --animation: modified Newton, keeping the last MUMPS factor across iterations "
+                        "and frames while each iteration cuts the residual 4-fold (faster; a resumed run then "
+                        "matches an uninterrupted one to solver tolerance, not bit for bit)")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
+
+    p = sub.add_parser("retarget", help="carry a fit's or an animation's motion onto another model",
+                       description=retarget_animation.__doc__)
+    p.add_argument("animation", nargs="?",
+                   help="a fit or simulation results folder, or an animation file (CSV, TOML)")
+    p.add_argument("--model", help="the target model folder (default: the built-in face at --tets)")
+    p.add_argument("--tets", type=int, default=20_000, help="built-in face resolution")
+    p.add_argument("--source-model", help="the model the animation was made for (default: the one a results "
+                                          "folder names in its run.json)")
+    p.add_argument("--out", help="the animation file to write (.csv)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing animation file")
+
+    p = sub.add_parser("edit", help="edit an animation or fit in activation space -> an animation CSV",
+                       description="Edits of fitted or written animations, each control on its own space "
+                                   "(docs/animation.md): in-betweens of two poses, exaggeration about neutral, "
+                                   "splicing and retiming, keyframes of one muscle, smoothing. SOURCE is a "
+                                   "CSV or TOML animation or a fit or simulation folder; a POSE is SOURCE@SECONDS, "
+                                   "SOURCE#FRAME or expression:NAME. The result is a CSV for simulate --animation.")
+    operations = p.add_subparsers(dest="operation", required=True)
+
+    def edit_options(q):
+        q.add_argument("--out", required=True, help="the edited animation (.csv)")
+        q.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+        q.add_argument("--model", help="model folder: for expression:NAME poses, and to check the result against")
+        q.add_argument("--tets", type=int, help="the built-in face at this resolution, as --model")
+
+    q = operations.add_parser("between", help="in-betweens of two poses (sifakis2005 figure 10)")
+    q.add_argument("first", metavar="POSE")
+    q.add_argument("second", metavar="POSE")
+    q.add_argument("--frames", type=int, default=11, help="poses from the first to the second, both included")
+    q.add_argument("--duration", type=float, default=1.0, help="seconds from the first pose to the second")
+    edit_options(q)
+    q = operations.add_parser("scale", help="exaggerate or tone down activations, clamped to [0, 1]")
+    q.add_argument("source", metavar="SOURCE")
+    q.add_argument("--factor", type=float, required=True, help="> 1 exaggerates, < 1 tones down")
+    q.add_argument("--about", metavar="POSE", help="scale about this pose's activations (default: neutral, 0)")
+    edit_options(q)
+    q = operations.add_parser("splice", help="segments of animations one after another, retimed")
+    q.add_argument("parts", nargs="+", metavar="SOURCE[@START:STOP][xSPEED]",
+                   help="a time range of a source (seconds of its own clock), played SPEED times as fast")
+    q.add_argument("--transition", type=float, metavar="S",
+                   help="seconds of in-betweens across each seam (default: one frame)")
+    q.add_argument("--frame-rate", type=float, metavar="HZ", help="resample every part at this rate")
+    edit_options(q)
+    q = operations.add_parser("keyframes", help="keyframes of one muscle on top of an animation")
+    q.add_argument("source", metavar="SOURCE")
+    q.add_argument("--muscle", required=True)
+    q.add_argument("--keys", required=True, metavar="T=A,...", help="activation A at time T (s), comma-separated")
+    q.add_argument("--blend", type=float, default=0.1, metavar="S",
+                   help="seconds over which the keys blend in before the first and out after the last (0.1)")
+    q.add_argument("--interpolation", choices=("smooth", "linear"), default="smooth")
+    edit_options(q)
+    q = operations.add_parser("smooth", help="smooth the curves in time, clamped")
+    q.add_argument("source", metavar="SOURCE")
+    q.add_argument("--time-constant", type=float, required=True, metavar="S",
+                   help="the Gaussian's standard deviation (s); Savitzky-Golay's window is +- 2 of them")
+    q.add_argument("--method", choices=("gaussian", "savgol"), default="gaussian")
+    edit_options(q)
 
     p = sub.add_parser("demo", help="the main job: build the face, synthesise a take, fit it",
                        description=demo.__doc__)
@@ -807,7 +1076,8 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
         args, petsc_args = parser.parse_known_args(argv)
     for command, positional in (("fit", "capture"), ("simulate", "expressions")):
         moving_an_object = command == "simulate" and getattr(args, "path", None) is not None
-        if args.command == command and not getattr(args, positional) and not moving_an_object:
+        animating = command == "simulate" and getattr(args, "animation", None) is not None
+        if args.command == command and not getattr(args, positional) and not (moving_an_object or animating):
             sub.choices[command].error(f"the {positional} argument is required (on the command line or "
                                        f"as {positional!r} in the --config file)")
     if args.command == "build" and (args.subject or args.surface):
@@ -855,8 +1125,14 @@ def _main(argv=None) -> int:
             raise SystemExit(f"face-dolfinx video: error: {error}") from None
         log.info("video: %s", written)
         return 0
+    if args.command == "retarget":
+        retarget_animation(args)
+        return 0
     if args.command == "demo":
         return demo(args)
+    if args.command == "edit":
+        edit(args)
+        return 0
 
     model = _model_from_args(args)
     if args.command == "synth":
@@ -864,6 +1140,14 @@ def _main(argv=None) -> int:
         return 0
     if args.command == "fit":
         fit(model, args)
+        return 0
+    if args.animation is not None:
+        if args.expressions or args.object or args.path or args.coarse:
+            raise SystemExit("--animation plays the animation alone: give no expressions, --object, --path "
+                             "or --coarse with it")
+        if args.dynamic:
+            return _simulate_dynamic_animation(model, args, pathlib.Path(args.out))
+        simulate_animation(model, args)
         return 0
     out = pathlib.Path(args.out)
     if args.dynamic:
@@ -878,6 +1162,21 @@ def _main(argv=None) -> int:
         raise SystemExit(str(error)) from None
     if MPI.COMM_WORLD.rank == 0:
         print(f"results: {out.resolve()} ({len(rows)} expressions; face.xdmf for ParaView, PNG renders)")
+    return 0
+
+
+def _simulate_dynamic_animation(model, args, out: pathlib.Path) -> int:
+    """``simulate --animation FILE --dynamic``: the animation's controls integrated in time
+    (``simulate_dynamic``), one frame at each of its times."""
+    from face_dolfinx.animation.playback import animation_and_markers
+    settings = dynamic_settings(args)
+    animation, _ = animation_and_markers(args.animation)
+    animation.check(model)
+    rows = simulate_dynamic(model, lambda t: animation.controls_at(t, model), animation.times, out, settings,
+                            degree=args.degree, overwrite=args.overwrite, intraoral_pressure=animation.has_pressure,
+                            source=dict(animation=str(animation.source)))
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"results: {out.resolve()} ({len(rows)} frames; face.xdmf for ParaView)")
     return 0
 
 

@@ -105,3 +105,15 @@ def jaw_pose(jaw, opening_angle: float = 0.0, slide_right: float = 0.0,
     M = opening @ turn
     new_mid = jaw.midpoint + midpoint_shift
     return AffineMap(M, new_mid - M @ jaw.midpoint)
+
+
+def tmj_values(jaw, frame: AffineMap) -> np.ndarray:
+    """The TMJ values (opening in rad, right and left condyle slides in mm) of a mandible frame:
+    the inverse of ``jaw_pose``, exact for its frames; for any other affine frame (a paper-mode
+    fit's, rigid only through a penalty) the values of psi_4, psi_5 and psi_6 (``penalties.tmj``)."""
+    M, t = frame.matrix, frame.translation
+    half_axis = 0.5 * jaw.condyle_distance * jaw.u
+    slide_right = jaw.v @ (M @ (jaw.midpoint - half_axis) + t - jaw.midpoint)
+    slide_left = jaw.v @ (M @ (jaw.midpoint + half_axis) + t - jaw.midpoint)
+    opening = math.asin(float(np.clip(-(jaw.w @ M @ jaw.v), -1.0, 1.0)))
+    return np.array([opening, slide_right, slide_left])

@@ -13,6 +13,7 @@ the eye fissures read dark: a wall is the smooth patch (bounded by creases) that
 of the surface, i.e. a boundary loop other than the longest one (the outer rim).
 Markers hidden behind the surface (e.g. the far cheek in a three-quarter view) are not drawn.
 """
+import math
 from pathlib import Path
 
 import matplotlib
@@ -123,6 +124,14 @@ def draw_skin(points, triangles, scalars=None, markers=None, other_markers=None,
         axes.set_title(title, fontsize=10)
     figure.tight_layout()
     return figure
+
+
+def marker_caption(rms_error: float) -> str:
+    """The caption's marker line: the error to the capture, or, for a simulation without one,
+    that only the simulated markers are drawn."""
+    if math.isfinite(rms_error):
+        return f"marker RMS {rms_error:.2f} mm\nred: captured, green: simulated"
+    return "simulated markers green (no capture)"
 
 
 def view_box(camera_xy: np.ndarray, margin: float = 0.04) -> tuple[tuple[float, float], tuple[float, float]]:

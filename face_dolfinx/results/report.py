@@ -29,7 +29,7 @@ import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
 import numpy as np  # noqa: E402
 
 from .xdmf import XdmfSeries  # noqa: E402
-from .render import render_skin  # noqa: E402
+from .render import marker_caption, render_skin  # noqa: E402
 from . import accuracy  # noqa: E402
 from .folder import FitFolder  # noqa: E402
 from face_dolfinx.model.folder import ModelArrays, read_model_arrays  # noqa: E402
@@ -210,8 +210,7 @@ def _render_frames(folder: FitFolder, results: dict, model: ModelArrays, count: 
     for frame in chosen:
         moved = skin_points + folder.displacement(frame)[skin_nodes]
         captured, simulated = folder.frame_markers(frame)
-        title = (f"frame {frame} ({folder.times[frame]:.2f} s): marker RMS {results[frame].rms_error:.2f} mm\n"
-                 f"red: captured, green: simulated")
+        title = f"frame {frame} ({folder.times[frame]:.2f} s): {marker_caption(results[frame].rms_error)}"
         written.append(render_skin(moved, skin_triangles, out / f"frame_{frame:06d}.png",
                                    markers=captured, other_markers=simulated, title=title))
     return written

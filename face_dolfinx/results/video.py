@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from face_dolfinx.model.folder import read_model_arrays
 from .folder import FitFolder
-from .render import camera_rotation, draw_skin, view_box
+from .render import camera_rotation, draw_skin, marker_caption, view_box
 
 MAX_FPS = 60.0
 
@@ -64,8 +64,7 @@ def write_video(path, out=None, *, view: str = "front", step: int = 1, fps: floa
         for frame in tqdm(frames, desc=f"video {out.name}", unit="frame", disable=not progress):
             captured, simulated = folder.frame_markers(frame)
             result = results[frame]
-            title = (f"{folder.times[frame]:6.2f} s (frame {folder.take_frames[frame]}): "
-                     f"marker RMS {result.rms_error:.2f} mm\nred: captured, green: simulated")
+            title = f"{folder.times[frame]:6.2f} s (frame {folder.take_frames[frame]}): {marker_caption(result.rms_error)}"
             figure = draw_skin(skin_at(frame), skin_triangles, markers=captured, other_markers=simulated,
                                title=title, view=view, box=box)
             figure.canvas.draw()
