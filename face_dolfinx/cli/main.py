@@ -328,6 +328,7 @@ def simulate_animation(model, args) -> None:
     try:
         folder, markers = open_playback(model, animation, args.out, markers=markers, overwrite=args.overwrite,
                                         extra=dict(degree=args.degree, strength=args.strength,
+                                                   material=[override.describe() for override in model.material_overrides],
                                                    newton_tolerance=args.newton_tolerance,
                                                    reuse_factorization=args.reuse_factorization))
     except FitFolderError as error:
