@@ -1,5 +1,5 @@
 #!/bin/bash
-# Every benchmark of docs/performance.md, docs/ladder.md and docs/stability.md, one after the other
+# Every benchmark of docs/performance.md, docs/ladder.md, docs/stability.md and docs/dynamics.md, one after the other
 # (they time themselves: run nothing else meanwhile). Each result goes to benchmarks/results/<study>/
 # under the name the docs cite, with an entry in that folder's manifest.json (commit, command,
 # machine, date, tets, ranks; benchmarks/provenance.py); bulky fit folders and takes go to runs/.
@@ -71,3 +71,13 @@ $PYTHON benchmarks/stability.py --collect $RESULTS/stability/{forward_5k-20k,ram
 mpirun -n 2 $PYTHON benchmarks/edit_speed.py --tets 20000 --out $RESULTS/edit/edit_20k_np2.jsonl
 # The model ladder (writes its own tables and figures).
 benchmarks/run_ladder.sh
+# Dynamic against quasistatic re-simulation (docs/dynamics.md): 5K and 20K faces, substeps of 1/240, 1/60 and 1/960 s.
+$PYTHON benchmarks/dynamics.py --tets 5000 --out $RESULTS/dynamics/dynamics_5k.jsonl --plot docs/img/dynamics_5k.png
+$PYTHON benchmarks/dynamics.py --tets 5000 --time-step 0.016666666666666666 \
+  --out $RESULTS/dynamics/dynamics_5k_step60hz.jsonl
+$PYTHON benchmarks/dynamics.py --tets 5000 --motions expression --tissues soft --time-step 0.0010416666666666667 \
+  --out $RESULTS/dynamics/dynamics_5k_soft_expression_step960hz.jsonl
+$PYTHON benchmarks/dynamics.py --tets 20000 --motions expression shake --tissues model \
+  --out $RESULTS/dynamics/dynamics_20k.jsonl --plot docs/img/dynamics_20k.png
+$PYTHON benchmarks/dynamics.py --tets 20000 --motions expression shake --tissues model --time-step 0.016666666666666666 \
+  --out $RESULTS/dynamics/dynamics_20k_step60hz.jsonl

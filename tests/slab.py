@@ -64,4 +64,4 @@ def slab_model(cells=(8, 4, 2), comm=MPI.COMM_WORLD):
     return SimpleNamespace(
         path="<slab>", jaw=jaw, name="slab", mesh=domain, facet_tags=tags,
         boundary_ids={"cranium": CRANIUM, "mandible": MANDIBLE}, muscles=muscles, material=material,
-        muscle_names=names, muscle_index=muscle_index, peak_stress=peak_stress)
+        material_overrides=(), muscle_names=names, muscle_index=muscle_index, peak_stress=peak_stress)

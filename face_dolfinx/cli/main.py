@@ -74,8 +74,36 @@ def _model_from_args(args):
     from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.model.folder import load_model
     path = pathlib.Path(args.model) if args.model else build_builtin_face(target_tets=args.tets)
-    model = load_model(path, MPI.COMM_WORLD)
-    return model.with_strength(args.strength) if args.strength else model
+    return _with_overrides(load_model(path, MPI.COMM_WORLD), args)
+
+
+def _with_overrides(model, args):
+    """``model`` with the ``--strength`` and ``--material`` overrides of the command line."""
+    model = model.with_strength(args.strength) if args.strength else model
+    return model.with_material(args.material) if args.material else model
+
+
+def material_option(text: str) -> tuple:
+    """``--material``: a TOML file of ``[[region]]`` tables, or ``REGION:PARAM=FACTOR,...`` overrides
+    separated by ``;`` (``face_dolfinx.model.regions``)."""
+    from face_dolfinx.model.regions import MaterialError, parse_material_option, read_material_file
+    try:
+        if text.strip().endswith(".toml"):
+            return tuple(read_material_file(text.strip()))
+        overrides = tuple(parse_material_option(item) for item in text.split(";") if item.strip())
+    except MaterialError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    if not overrides:
+        raise argparse.ArgumentTypeError(f"{text!r}: give REGION:PARAM=FACTOR or a TOML file")
+    return overrides
+
+
+def add_material_option(parser) -> None:
+    parser.add_argument("--material", type=material_option, metavar="REGION:PARAM=F[;...]|FILE.toml",
+                        help="regional flesh overrides: REGION = muscle:NAME, sphere:X,Y,Z,R or "
+                             "box:X0,Y0,Z0,X1,Y1,Z1 (mm), PARAM = mu10, mu01, kappa, passive or all, F its "
+                             "factor (e.g. sphere:0,95,20,12:all=0.3 softens the nose); or a TOML file of "
+                             "[[region]] tables that may also set values (docs/dynamics.md)")
 
 
 def strength_option(text: str) -> dict[str, float]:
@@ -105,7 +133,7 @@ def add_strength_option(parser) -> None:
 
 def _coarse_model(args):
     """The model named by ``--coarse``: a number is a built-in face resolution, else a folder; with
-    the same ``--strength`` as the fine one."""
+    the same ``--strength`` and ``--material`` as the fine one."""
     if not args.coarse:
         return None
     from face_dolfinx.model.anatomy import build_builtin_face
@@ -116,7 +144,7 @@ def _coarse_model(args):
         model = load_model(build_builtin_face(target_tets=int(args.coarse)), MPI.COMM_WORLD)
     else:
         model = load_model(pathlib.Path(args.coarse), MPI.COMM_WORLD)
-    return model.with_strength(args.strength) if args.strength else model
+    return _with_overrides(model, args)
 
 
 def _expression_controls(model, name: str):
@@ -181,9 +209,101 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
         if comm.rank == 0:
             (staging / "summary.json").write_text(json.dumps(
                 dict(model=str(model.path), expressions=rows, object=object_rows, ranks=comm.size,
+                     material=[override.describe() for override in model.material_overrides],
                      coarse_model=str(coarse_model.path) if coarse_model is not None else None),
                 indent=2))
     return rows
+
+
+def expression_sequence(model, expressions: list[str], seconds_each: float):
+    """``controls_at(t)`` and the duration of the named expressions played one after another, each
+    reached from the previous one (rest for the first) along a smooth ramp of ``seconds_each``,
+    the last one then held as long again (to watch the flesh settle)."""
+    from face_dolfinx.physics.problem import Controls
+    from face_dolfinx.model.bones import AffineMap
+    names = [None, *expressions]
+    keys = []
+    for name in names:
+        if name is None:
+            keys.append(Controls(np.zeros(len(model.muscles)), AffineMap(), AffineMap()))
+            continue
+        activations, jaw = _expression_controls(model, name)
+        vector = np.zeros(len(model.muscles))
+        for muscle, value in activations.items():
+            vector[model.muscle_index(muscle)] = value
+        keys.append(Controls(vector, AffineMap(), jaw))
+
+    def controls_at(t: float):
+        segment = min(int(t // seconds_each), len(expressions) - 1) if t > 0 else 0
+        s = min(max(t / seconds_each - segment, 0.0), 1.0)
+        return keys[segment].interpolate(keys[segment + 1], s * s * (3.0 - 2.0 * s))
+
+    return controls_at, (len(expressions) + 1) * seconds_each
+
+
+def simulate_dynamic(model, controls_at, times, out: pathlib.Path, settings, *, degree: int = 1,
+                     overwrite: bool = False, intraoral_pressure: bool = False,
+                     source: dict | None = None) -> list[dict]:
+    """Integrate the face in time (``FaceProblem.dynamics``) from the equilibrium of
+    ``controls_at(times[0])`` through ``times`` (s), one XDMF frame per time, into the results
+    folder ``out`` with summary.json. A time step that cannot converge ends the run with one
+    message after the folder is written with the frames before it (summary.json says where it
+    stopped). ``intraoral_pressure``: the controls carry a pressure. ``source``: what drove it, for
+    summary.json."""
+    from face_dolfinx.equilibrium.dynamics import DynamicsError
+    from face_dolfinx.files import atomic_directory
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.results.xdmf import FaceWriter
+    comm = MPI.COMM_WORLD
+    times = np.asarray(times, dtype=float)
+    if times.size < 2 or np.any(np.diff(times) <= 0):
+        raise SystemExit("simulate --dynamic: the frame times must increase (two or more)")
+    try:  # the model may lack what the controls need (an 'oral' surface for a pressure)
+        problem = FaceProblem(model, degree=degree, intraoral_pressure=intraoral_pressure)
+    except ValueError as error:
+        raise SystemExit(f"face-dolfinx simulate --dynamic: {error}") from None
+    first = controls_at(float(times[0]))
+    problem.solve(activations=first.activations, cranium=first.cranium, jaw=first.jaw,
+                  pressure=first.pressure if intraoral_pressure else None)
+    dynamic = problem.dynamics(settings)
+    dynamic.start(float(times[0]))
+    rows, failure = [], None
+    with atomic_directory(out, comm, overwrite=overwrite) as staging:
+        with FaceWriter(problem, staging / "face.xdmf") as writer:
+            def frame(index, t, report):
+                displacement = comm.allreduce(float(np.abs(problem.u.x.array).max(initial=0.0)), op=MPI.MAX)
+                rows.append(dict(frame=index, time_s=round(t, 6), substeps=report.substeps if report else 0,
+                                 newton_iterations=report.newton_iterations if report else 0,
+                                 seconds=round(report.seconds, 3) if report else 0.0,
+                                 max_displacement_mm=round(displacement, 4),
+                                 kinetic_energy_uJ=dynamic.kinetic_energy()))
+                writer.write(t)
+                if report is not None:
+                    log.info("t = %.4f s: %d substep(s), Newton %d its, %.2f s, max |u| %.2f mm", t, report.substeps,
+                             report.newton_iterations, report.seconds, displacement)
+
+            try:
+                dynamic.run(controls_at, times, frame)
+            except DynamicsError as error:
+                failure = str(error)
+        if comm.rank == 0:
+            (staging / "summary.json").write_text(json.dumps(
+                dict(model=str(model.path), dynamic=vars(settings), source=source or {}, frames=rows,
+                     ranks=comm.size, failure=failure,
+                     material=[override.describe() for override in model.material_overrides]), indent=2))
+    if failure is not None:
+        raise SystemExit(f"face-dolfinx simulate --dynamic: {failure}; {out} holds the {len(rows)} frames before it")
+    return rows
+
+
+def dynamic_settings(args):
+    """``DynamicSettings`` of the simulate options, or a usage error naming the option."""
+    from face_dolfinx.equilibrium.dynamics import DynamicsError, DynamicSettings
+    try:
+        return DynamicSettings(density=args.density, mass_damping=args.damping, viscosity=args.viscosity,
+                               scheme=args.scheme, time_step=args.time_step)
+    except DynamicsError as error:
+        raise SystemExit(f"face-dolfinx simulate --dynamic: {error}") from None
 
 
 def simulate_animation(model, args) -> None:
@@ -208,6 +328,7 @@ def simulate_animation(model, args) -> None:
     try:
         folder, markers = open_playback(model, animation, args.out, markers=markers, overwrite=args.overwrite,
                                         extra=dict(degree=args.degree, strength=args.strength,
+                                                   material=[override.describe() for override in model.material_overrides],
                                                    newton_tolerance=args.newton_tolerance,
                                                    reuse_factorization=args.reuse_factorization))
     except FitFolderError as error:
@@ -562,7 +683,8 @@ def fit(model, args) -> None:
                                      truth_file=truth_file if truth_file.exists() else None, setup=setup,
                                      take_frames=take_frames,
                                      extra=dict(correspondence=correspondence, take_frame_selection=args.frames,
-                                                strength=args.strength))
+                                                strength=args.strength,
+                                                material=[override.describe() for override in model.material_overrides]))
     except FitFolderError as error:
         raise SystemExit(str(error)) from None
     if folder.finished:
@@ -718,6 +840,7 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--overwrite", action="store_true", help="replace an existing result folder")
     p.add_argument("--no-render", action="store_true", help="skip the PNG renders")
     add_strength_option(p)
+    add_material_option(p)
     p.add_argument("--coarse", metavar="TETS|FOLDER",
                    help="start each solve from the equilibrium of a coarse model of the same face: "
                         "the built-in face at TETS tets, or a model folder (docs/performance.md: "
@@ -726,6 +849,23 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="a rigid sphere (radius in mm) pressed against the skin along --path (docs/contact.md)")
     p.add_argument("--path", metavar="FILE",
                    help="the object's centre over time: one 'x y z' line (mm, model frame) per frame")
+    p.add_argument("--dynamic", action="store_true",
+                   help="integrate in time with inertia (docs/dynamics.md): the --animation, one frame at each of "
+                        "its times, or the expressions one after another, each reached in --expression-time "
+                        "seconds, frames at --frame-rate")
+    p.add_argument("--expression-time", type=float, default=0.3, metavar="S",
+                   help="with --dynamic: seconds to reach each expression (default 0.3)")
+    p.add_argument("--frame-rate", type=float, default=60.0, metavar="HZ", help="with --dynamic: frames per second")
+    p.add_argument("--time-step", type=float, default=1.0 / 240.0, metavar="S",
+                   help="with --dynamic: the largest time step (default 1/240 s), halved where Newton fails")
+    p.add_argument("--scheme", choices=("newmark", "backward_euler"), default="newmark",
+                   help="with --dynamic: Newmark's average acceleration (no numerical damping) or backward Euler")
+    p.add_argument("--density", type=float, default=1e-6, metavar="KG_PER_MM3",
+                   help="with --dynamic: tissue density (default 1e-6 kg/mm^3 = 1000 kg/m^3)")
+    p.add_argument("--damping", type=float, default=0.0, metavar="ALPHA",
+                   help="with --dynamic: mass-proportional damping (1/s)")
+    p.add_argument("--viscosity", type=float, default=0.0, metavar="ETA",
+                   help="with --dynamic: Kelvin-Voigt viscosity of the flesh (kPa s)")
     p.add_argument("--animation", metavar="FILE|FOLDER",
                    help="play an animation: a CSV or TOML file (docs/animation.md) or a fit or simulation "
                         "results folder; writes a results folder like a fit's, resumable frame by frame")
@@ -832,6 +972,7 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
         p.add_argument("--out", default=out, help="output path")
         p.add_argument("--overwrite", action="store_true", help="replace existing output")
         add_strength_option(p)
+        add_material_option(p)
 
     p = sub.add_parser("synth", help="synthetic take with known truth")
     model_options(p, "takes/speech.trc")
@@ -1017,9 +1158,13 @@ def _main(argv=None) -> int:
         if args.expressions or args.object or args.path or args.coarse:
             raise SystemExit("--animation plays the animation alone: give no expressions, --object, --path "
                              "or --coarse with it")
+        if args.dynamic:
+            return _simulate_dynamic_animation(model, args, pathlib.Path(args.out))
         simulate_animation(model, args)
         return 0
     out = pathlib.Path(args.out)
+    if args.dynamic:
+        return _simulate_dynamic_expressions(model, args, out)
     contact = _object_from_args(args)
     try:
         rows = simulate(model, args.expressions, out, degree=args.degree, overwrite=args.overwrite,
@@ -1030,6 +1175,41 @@ def _main(argv=None) -> int:
         raise SystemExit(str(error)) from None
     if MPI.COMM_WORLD.rank == 0:
         print(f"results: {out.resolve()} ({len(rows)} expressions; face.xdmf for ParaView, PNG renders)")
+    return 0
+
+
+def _simulate_dynamic_animation(model, args, out: pathlib.Path) -> int:
+    """``simulate --animation FILE --dynamic``: the animation's controls integrated in time
+    (``simulate_dynamic``), one frame at each of its times."""
+    from face_dolfinx.animation.playback import animation_and_markers
+    settings = dynamic_settings(args)
+    animation, _ = animation_and_markers(args.animation)
+    animation.check(model)
+    rows = simulate_dynamic(model, lambda t: animation.controls_at(t, model), animation.times, out, settings,
+                            degree=args.degree, overwrite=args.overwrite, intraoral_pressure=animation.has_pressure,
+                            source=dict(animation=str(animation.source)))
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"results: {out.resolve()} ({len(rows)} frames; face.xdmf for ParaView)")
+    return 0
+
+
+def _simulate_dynamic_expressions(model, args, out: pathlib.Path) -> int:
+    """``simulate --dynamic``: the named expressions played in time (``simulate_dynamic``)."""
+    if args.object or args.path or args.coarse:
+        raise SystemExit("simulate --dynamic: --object, --path and --coarse are for quasistatic simulation")
+    settings = dynamic_settings(args)
+    if not (math.isfinite(args.expression_time) and args.expression_time > 0):
+        raise SystemExit(f"simulate --dynamic: --expression-time {args.expression_time}: give a positive number of seconds")
+    if not (math.isfinite(args.frame_rate) and args.frame_rate > 0):
+        raise SystemExit(f"simulate --dynamic: --frame-rate {args.frame_rate}: give a positive rate (Hz)")
+    for name in args.expressions:  # fail before any work
+        _expression_controls(model, name)
+    controls_at, duration = expression_sequence(model, args.expressions, args.expression_time)
+    times = np.arange(0.0, duration + 0.5 / args.frame_rate, 1.0 / args.frame_rate)
+    rows = simulate_dynamic(model, controls_at, times, out, settings, degree=args.degree, overwrite=args.overwrite,
+                            source=dict(expressions=args.expressions, expression_time_s=args.expression_time))
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"results: {out.resolve()} ({len(rows)} frames; face.xdmf for ParaView)")
     return 0
 
 

@@ -113,6 +113,8 @@ class FaceModel:
     landmarks: dict[str, np.ndarray]
     material: dict[str, float]
     expressions: dict[str, dict]
+    # Regional material overrides (``with_material``, ``face_dolfinx.model.regions``), in order.
+    material_overrides: tuple = ()
 
     @property
     def muscle_names(self) -> list[str]:
@@ -148,6 +150,23 @@ class FaceModel:
                    for index, (muscle, factor) in enumerate(zip(self.muscles, factors))]
         return replace(self, muscles=muscles)
 
+    def with_material(self, overrides) -> "FaceModel":
+        """This model with regional material overrides (``face_dolfinx.model.regions``) after its
+        own: softer or stiffer flesh in a muscle's cells, a sphere or a box. Collective: a region
+        naming an unknown muscle, or holding no cell of the mesh, raises ModelError here, before
+        any solve."""
+        overrides = tuple(overrides)
+        midpoints = cell_midpoints(self.mesh)
+        for override in overrides:
+            region = override.region
+            if region.kind == "muscle":
+                self.muscle_index(region.name)
+            owned = region.cells(self, midpoints)
+            owned = owned[owned < self.mesh.topology.index_map(3).size_local]
+            if self.mesh.comm.allreduce(len(owned), op=MPI.SUM) == 0:
+                raise ModelError(f"{self.path}: material region {region.describe()} holds no cell of the model")
+        return replace(self, material_overrides=self.material_overrides + overrides)
+
     def skin_surface(self) -> tuple[np.ndarray, np.ndarray]:
         """Points (n, 3) and triangles (m, 3) of the facets tagged skin, on EVERY rank.
 
@@ -156,6 +175,13 @@ class FaceModel:
         model files (``ModelArrays.skin_surface``), so they do not depend on the distribution.
         """
         return on_rank_0(lambda: read_model_arrays(self.path, check=False).skin_surface(), self.mesh.comm)
+
+
+def cell_midpoints(mesh) -> np.ndarray:
+    """Midpoints (mm) of the rank's owned and ghost cells, in local cell order."""
+    index_map = mesh.topology.index_map(mesh.topology.dim)
+    cells = np.arange(index_map.size_local + index_map.num_ghosts, dtype=np.int32)
+    return dolfinx_mesh.compute_midpoints(mesh, mesh.topology.dim, cells)
 
 
 # ---------------------------------------------------------------------------------------------

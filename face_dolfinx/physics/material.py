@@ -5,7 +5,10 @@ penalty. Muscles are embedded per tetrahedron in K "slots" (see ``face_dolfinx.p
 slot k carries a fiber direction f_k, a weight w_k = sigma_max * volume fraction and an activation
 a_k, all cellwise fields, and adds the passive and active tension along f_k:
 
-    Psi(F) = Psi_MR(F) + Psi_vol(F) + sum_k [ Psi_passive(F; f_k, w_k) + a_k Psi_active(F; f_k, w_k) ]
+    Psi(F) = Psi_MR(F) + Psi_vol(F) + sum_k [ s Psi_passive(F; f_k, w_k) + a_k Psi_active(F; f_k, w_k) ]
+
+The flesh parameters (mu10, mu01, kappa) and the passive fibre scale s may be numbers or cellwise
+fields (regional overrides, ``face_dolfinx.model.regions``).
 
 The object only composes UFL; the problem that owns the fields and spaces builds the forms.
 """
@@ -32,18 +35,20 @@ class FaceMaterial:
     flesh: forms.MooneyRivlin
     volumetric: forms.LogVolumetric
     slots: tuple[FiberSlot, ...]
+    passive_scale: float | ufl.core.expr.Expr = 1.0
 
     @classmethod
-    def from_parameters(cls, parameters: dict, slots) -> "FaceMaterial":
-        """From a model's material parameters (mu10, mu01, kappa in kPa) and its slots."""
+    def from_parameters(cls, parameters: dict, slots, passive_scale=1.0) -> "FaceMaterial":
+        """From material parameters (mu10, mu01, kappa in kPa: numbers or cellwise fields), the
+        slots and the scale of the passive fibre curves."""
         return cls(forms.MooneyRivlin(parameters["mu10"], parameters["mu01"]),
-                   forms.LogVolumetric(parameters["kappa"]), tuple(slots))
+                   forms.LogVolumetric(parameters["kappa"]), tuple(slots), passive_scale)
 
     def laws(self) -> list:
         """Every law of the energy: the flesh, then each slot's passive and active fiber."""
         laws = [self.flesh, self.volumetric]
         for slot in self.slots:
-            laws += [forms.PassiveFiber(slot.fiber, slot.weight),
+            laws += [forms.PassiveFiber(slot.fiber, self.passive_scale * slot.weight),
                      forms.ActiveFiber(slot.fiber, slot.weight, slot.activation)]
         return laws
 

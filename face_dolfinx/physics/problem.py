@@ -38,6 +38,8 @@ import dolfinx.fem.petsc as fem_petsc
 
 import forms
 from face_dolfinx.model.bones import AffineMap
+from face_dolfinx.model.folder import cell_midpoints
+from face_dolfinx.model.regions import material_fields
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
 from face_dolfinx.physics.contact import ContactPotential, ContactSettings
@@ -141,6 +143,24 @@ def build_muscle_slots(model, mesh) -> MuscleSlots:
     return MuscleSlots(muscle_of_slot, weight, fiber, activation, direction)
 
 
+def build_material_fields(model, mesh) -> dict[str, fem.Function] | None:
+    """The flesh parameters mu10, mu01, kappa (kPa) and the passive fibre scale as DG0 functions
+    with the model's regional overrides (``face_dolfinx.model.regions``); None for a model without
+    overrides, whose forms keep the parameters as numbers: FFCx folds those into the kernels'
+    constants, and the same values in DG0 functions change a solve in the last bit (8e-16 mm on
+    the slab), so a uniform model gives the results it always gave, to the bit."""
+    if not model.material_overrides:
+        return None
+    DG0 = fem.FunctionSpace(mesh, ("DG", 0))
+    dofs = _dg0_cell_dofs(DG0)
+    fields = {}
+    for name, values in material_fields(model, cell_midpoints(mesh)).items():
+        function = fem.Function(DG0, name=f"material_{name}")
+        function.x.array[dofs] = values  # every local cell's own value: nothing to scatter
+        fields[name] = function
+    return fields
+
+
 class FaceProblem:
     """Quasistatic face for given activations and bone frames.
 
@@ -197,14 +217,18 @@ class FaceProblem:
         q = quadrature_degree if quadrature_degree is not None else max(1, 2 * (degree - 1))
         dx = ufl.dx(domain=mesh, metadata={"quadrature_degree": q})
         self.slots = build_muscle_slots(model, mesh)
+        self.material_fields = build_material_fields(model, mesh)
 
-        self.material = FaceMaterial.from_parameters(model.material, [
-            FiberSlot(f0, w, a) for w, f0, a in zip(self.slots.weight, self.slots.fiber, self.slots.activation)])
+        fields = self.material_fields
+        self.material = FaceMaterial.from_parameters(model.material if fields is None else fields, [
+            FiberSlot(f0, w, a) for w, f0, a in zip(self.slots.weight, self.slots.fiber, self.slots.activation)],
+            passive_scale=1.0 if fields is None else fields["passive"])
         F = forms.deformation_gradient(self.u)
         energy = self.material.strain_energy(F) * dx
         v = ufl.TestFunction(self.V)
         # The residual from the laws' stresses: the tangent is then one automatic derivative.
         residual = ufl.inner(self.material.first_piola(F), ufl.grad(v)) * dx
+        self.degree = degree
         self.has_pressure = intraoral_pressure
         self.pressure = fem.Constant(mesh, PETSc.ScalarType(0.0))
         if intraoral_pressure:
@@ -251,10 +275,14 @@ class FaceProblem:
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
         # closed by the orbicularis oris at 1): Newton is given room before continuation.
         lip_newton = {"snes_max_it": LIP_NEWTON_ITERATIONS} if self.lips is not None else {}
-        self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent="general" if intraoral_pressure else "spd",
+        # The time integrator adds inertia and damping to the residual, with its test function.
+        self._residual, self._test_function = residual, v
+        self._tangent_structure = "general" if intraoral_pressure else "spd"
+        self._petsc_options = {"snes_linesearch_max_it": line_search_iterations, **general, **lip_newton,
+                               **(petsc_options or {})}
+        self.solver = QuasistaticSolver(residual, self.u, self.bcs, tangent=self._tangent_structure,
                                         energy=energy,
-                                        petsc_options={"snes_linesearch_max_it": line_search_iterations,
-                                                       **general, **lip_newton, **(petsc_options or {})},
+                                        petsc_options=self._petsc_options,
                                         inversion_guard=InversionGuard(self.V) if inversion_guard else None,
                                         reuse_policy=FactorReusePolicy(across_solves=reuse_factorization,
                                                                        refresh_contraction=refresh_contraction),
@@ -263,6 +291,34 @@ class FaceProblem:
                                         energy_terms=energy_terms)
         self.controls = self.rest_controls()
         self.set_controls(self.controls)
+
+    def dynamics(self, settings=None):
+        """A time integrator of this face (``face_dolfinx.equilibrium.dynamics.DynamicFace``): the
+        residual with inertia and damping (``forms.Inertia``, ``forms.ViscousDamping``) of
+        ``settings`` (``DynamicSettings``; default: tissue density, no damping, Newmark's average
+        acceleration), its own Newton solver with this problem's options and inversion guard,
+        starting from the current displacement and controls."""
+        from face_dolfinx.equilibrium.dynamics import DynamicFace, DynamicSettings, TimeLevels
+        settings = settings if settings is not None else DynamicSettings()
+        if self.contact is not None or self.lips is not None:
+            raise ValueError("dynamic re-simulation with contact (objects or the lips) is not supported: the barrier "
+                             "has no time step control; simulate without --object/--contact")
+        levels = TimeLevels(self.V)
+        # rho u.v integrated exactly for degree p: 2p.
+        dx = ufl.dx(domain=self.mesh, metadata={"quadrature_degree": 2 * self.degree})
+        v = self._test_function
+        inertia = forms.Inertia(settings.density)
+        residual = self._residual + inertia.virtual_work(levels.new_acceleration(self.u), v) * dx
+        if settings.damped:
+            damping = forms.ViscousDamping(settings.density, settings.mass_damping, settings.viscosity)
+            residual = residual + damping.virtual_work(levels.new_velocity(self.u), v) * dx
+        solver = QuasistaticSolver(residual, self.u, self.bcs, tangent=self._tangent_structure,
+                                   petsc_options=self._petsc_options,
+                                   inversion_guard=self.solver.inversion_guard,
+                                   step_tolerance=self.solver.step_tolerance, keep_packed_coefficients=True)
+        mass = compile_form(inertia.virtual_work(ufl.TrialFunction(self.V), v) * dx)
+        kinetic_energy = compile_form(inertia.kinetic_energy(levels.velocity) * dx)
+        return DynamicFace(self, settings, solver, levels, mass, kinetic_energy)
 
     # -- set-up ------------------------------------------------------------------------------
     def _surface_tag(self, name: str, missing: str) -> int:
