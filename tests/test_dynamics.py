@@ -14,6 +14,7 @@ from face_dolfinx.cli.main import main
 from face_dolfinx.equilibrium.dynamics import DynamicsError, DynamicSettings, TISSUE_DENSITY
 from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.physics.problem import Controls, FaceProblem
+from face_dolfinx.results.folder import FitFolder
 from slab import slab_model
 
 COMM = MPI.COMM_WORLD
@@ -242,16 +243,28 @@ def test_simulate_dynamic_plays_expressions_in_time(builtin_model_path, tmp_path
 
 def test_simulate_animation_dynamic(builtin_model_path, tmp_path):
     """``simulate --animation FILE --dynamic``: an animation's controls integrated in time, one frame
-    at each of its times."""
+    at each of its times, into a results folder like a fit's that ``run.py video`` plays; the soft
+    face lags the quasistatic playback of the same animation."""
     folder = pathlib.Path(COMM.bcast(str(tmp_path), root=0))
     animation = folder / "smile.toml"
     if COMM.rank == 0:
         animation.write_text("frame_rate = 20\nduration = 0.15\n[muscles.zygomaticus_major_left]\n"
                              "times = [0.0, 0.1]\nvalues = [0.0, 0.6]\n")
     COMM.barrier()
-    assert main(["simulate", "--animation", str(animation), "--dynamic", "--model", str(builtin_model_path),
-                 "--time-step", "0.025", "--out", str(folder / "played")]) == 0
-    summary = json.loads((folder / "played" / "summary.json").read_text())
-    assert [row["time_s"] for row in summary["frames"]] == [0.0, 0.05, 0.1, 0.15]
-    assert all(row["substeps"] == 2 for row in summary["frames"][1:])
-    assert summary["frames"][-1]["max_displacement_mm"] > 1.0 and summary["failure"] is None
+    model = ["--model", str(builtin_model_path)]
+    assert main(["simulate", "--animation", str(animation), "--dynamic", *model, "--time-step", "0.025",
+                 "--out", str(folder / "played")]) == 0
+    assert main(["simulate", "--animation", str(animation), *model, "--out", str(folder / "static")]) == 0
+    played, static = FitFolder(folder / "played"), FitFolder(folder / "static")
+    assert played.finished and json.loads((folder / "played" / "run.json").read_text())["dynamic"]["time_step"] == 0.025
+    assert list(played.times) == [0.0, 0.05, 0.1, 0.15]
+    # Frame 0 is the same equilibrium; later frames differ by the motion the inertia holds back.
+    assert np.abs(played.displacement(0) - static.displacement(0)).max() < 1e-9
+    lag = [np.abs(played.displacement(f) - static.displacement(f)).max() for f in range(1, 4)]
+    motion = np.abs(static.displacement(3)).max()
+    assert motion > 1.0 and 1e-4 < max(lag) < 0.5 * motion
+    assert main(["video", str(folder / "played"), "--gif"]) == 0
+    assert (folder / "played" / "face.gif").stat().st_size > 0
+    with pytest.raises(SystemExit, match="cannot resume|runs whole"):
+        main(["simulate", "--animation", str(animation), "--dynamic", *model, "--stop-after", "2",
+              "--out", str(folder / "partial")])

@@ -29,7 +29,7 @@ from face_dolfinx.files import atomic_write
 from face_dolfinx.fitting import FrameResult, MarkerSet
 from face_dolfinx.parallel import on_rank_0
 from face_dolfinx.physics.problem import FaceProblem
-from face_dolfinx.results.folder import FitFolder
+from face_dolfinx.results.folder import FitFolder, FitFolderError
 from face_dolfinx.results.report import write_report
 from face_dolfinx.results.xdmf import FileNodeOrder
 from .animation import Animation
@@ -138,10 +138,14 @@ def open_playback(model, animation: Animation, out, *, markers: PlaybackMarkers 
 
 
 def play(problem: FaceProblem, animation: Animation, folder: FitFolder, markers: PlaybackMarkers, *,
-         stop_after: int | None = None, progress: bool = True) -> PlaybackRun:
+         stop_after: int | None = None, progress: bool = True, dynamic=None) -> PlaybackRun:
     """Solve the frames of ``animation`` that ``folder`` lacks, in order, each from the last
     equilibrium, writing each as it is done; then, if none is left, the tables and the report.
-    ``stop_after``: solve at most that many frames. Collective; rank 0 writes."""
+    ``stop_after``: solve at most that many frames. ``dynamic``: a ``DynamicFace`` of ``problem``
+    (``FaceProblem.dynamics``): the first frame is the equilibrium of its controls, every later one
+    is integrated in time from the frame before (inertia, damping; docs/dynamics.md); such a
+    playback starts at its first frame (its velocities are not stored), and a time step that cannot
+    converge raises ``DynamicsError`` with the frames before it written. Collective; rank 0 writes."""
     from tqdm import tqdm
     comm = problem.comm
     model = problem.model
@@ -150,6 +154,9 @@ def play(problem: FaceProblem, animation: Animation, folder: FitFolder, markers:
         if markers.names else None
     missing = on_rank_0(folder.missing_frames, comm)
     todo = missing if stop_after is None else missing[:max(0, stop_after)]
+    if dynamic is not None and todo and todo[0] != 0:
+        raise FitFolderError(f"{folder.path}: a dynamic playback cannot resume at frame {todo[0]} (its velocities are "
+                             f"not stored); --overwrite starts it again")
     run = PlaybackRun(folder)
     at = None  # the frame whose equilibrium the problem holds (None: rest)
     problem.reset_to_rest()
@@ -164,8 +171,15 @@ def play(problem: FaceProblem, animation: Animation, folder: FitFolder, markers:
                              frame, frame - 1)
             controls = animation.frame_controls(frame, model)
             began = time.perf_counter()
-            report = problem.solve(activations=controls.activations, cranium=controls.cranium, jaw=controls.jaw,
-                                   pressure=controls.pressure if problem.has_pressure else None)
+            if dynamic is not None and frame > 0:
+                report = dynamic.advance(float(animation.times[frame]), lambda t: animation.controls_at(t, model))
+                flag = ""
+            else:
+                report = problem.solve(activations=controls.activations, cranium=controls.cranium, jaw=controls.jaw,
+                                       pressure=controls.pressure if problem.has_pressure else None)
+                flag = "" if report.load_steps == 1 else f"{report.load_steps} load steps"
+                if dynamic is not None:
+                    dynamic.start(float(animation.times[frame]))
             seconds = time.perf_counter() - began
             at = frame
             simulated = (followed.positions(problem.u.x.array, controls.cranium) if followed is not None
@@ -180,8 +194,7 @@ def play(problem: FaceProblem, animation: Animation, folder: FitFolder, markers:
                 marker_errors=errors,
                 rms_error=float(np.sqrt(np.mean(present ** 2))) if present.size else math.nan,
                 max_error=float(present.max()) if present.size else math.nan,
-                gn_steps=0, seconds=seconds, phases={"equilibrium": seconds},
-                flag="" if report.load_steps == 1 else f"{report.load_steps} load steps",
+                gn_steps=0, seconds=seconds, phases={"equilibrium": seconds}, flag=flag,
                 pressure=controls.pressure)
             displacement = node_order.gather(problem.u.x.array)
             if comm.rank == 0:
@@ -189,9 +202,9 @@ def play(problem: FaceProblem, animation: Animation, folder: FitFolder, markers:
             run.frames.append(frame)
             run.newton_iterations.append(report.newton_iterations)
             run.seconds.append(seconds)
-            log.debug("frame %d/%d (%.3f s): Newton %d its, %d load step(s), %.3f s", frame + 1,
-                      animation.n_frames, animation.times[frame], report.newton_iterations, report.load_steps,
-                      seconds)
+            log.debug("frame %d/%d (%.3f s): Newton %d its, %.3f s%s", frame + 1, animation.n_frames,
+                      animation.times[frame], report.newton_iterations, seconds,
+                      f", {report.substeps} time step(s)" if dynamic is not None and frame > 0 else "")
             bar.set_postfix_str(f"frame {frame}: {report.newton_iterations} Newton its, {seconds:.2f} s",
                                 refresh=False)
             bar.update()

@@ -317,6 +317,9 @@ def simulate_animation(model, args) -> None:
     animation, markers = animation_and_markers(args.animation)
     if args.stop_after is not None and args.stop_after < 1:
         raise SystemExit(f"--stop-after {args.stop_after}: give 1 or more")
+    if args.dynamic and args.stop_after is not None:
+        raise SystemExit("--stop-after: a dynamic playback runs whole (its velocities are not stored to resume)")
+    settings = dynamic_settings(args) if args.dynamic else None
     animation.check(model)
     start = time.perf_counter()
     try:  # the model may lack what the animation needs (an 'oral' surface for its pressure)
@@ -330,7 +333,8 @@ def simulate_animation(model, args) -> None:
                                         extra=dict(degree=args.degree, strength=args.strength,
                                                    material=[override.describe() for override in model.material_overrides],
                                                    newton_tolerance=args.newton_tolerance,
-                                                   reuse_factorization=args.reuse_factorization))
+                                                   reuse_factorization=args.reuse_factorization,
+                                                   dynamic=vars(settings) if settings is not None else None))
     except FitFolderError as error:
         raise SystemExit(str(error)) from None
     if folder.finished:
@@ -341,7 +345,14 @@ def simulate_animation(model, args) -> None:
     log.info("model %s: %d tets, %d muscles; animation %s: %d frames, %.3g s; set-up %.1f s", model.name,
              model.mesh.topology.index_map(3).size_global, problem.num_muscles, animation.source,
              animation.n_frames, animation.times[-1] - animation.times[0], setup)
-    run = play(problem, animation, folder, markers, stop_after=args.stop_after)
+    from face_dolfinx.equilibrium.dynamics import DynamicsError
+    try:
+        run = play(problem, animation, folder, markers, stop_after=args.stop_after,
+                   dynamic=problem.dynamics(settings) if settings is not None else None)
+    except FitFolderError as error:
+        raise SystemExit(str(error)) from None
+    except DynamicsError as error:
+        raise SystemExit(f"face-dolfinx simulate --dynamic: {error}; {folder.path} keeps the frames before it") from None
     if run.seconds:
         log.info("%d frames: Newton %d its per frame (median), %.2f s per frame (median)", len(run.frames),
                  int(np.median(run.newton_iterations)), float(np.median(run.seconds)))
@@ -1158,8 +1169,6 @@ def _main(argv=None) -> int:
         if args.expressions or args.object or args.path or args.coarse:
             raise SystemExit("--animation plays the animation alone: give no expressions, --object, --path "
                              "or --coarse with it")
-        if args.dynamic:
-            return _simulate_dynamic_animation(model, args, pathlib.Path(args.out))
         simulate_animation(model, args)
         return 0
     out = pathlib.Path(args.out)
@@ -1175,21 +1184,6 @@ def _main(argv=None) -> int:
         raise SystemExit(str(error)) from None
     if MPI.COMM_WORLD.rank == 0:
         print(f"results: {out.resolve()} ({len(rows)} expressions; face.xdmf for ParaView, PNG renders)")
-    return 0
-
-
-def _simulate_dynamic_animation(model, args, out: pathlib.Path) -> int:
-    """``simulate --animation FILE --dynamic``: the animation's controls integrated in time
-    (``simulate_dynamic``), one frame at each of its times."""
-    from face_dolfinx.animation.playback import animation_and_markers
-    settings = dynamic_settings(args)
-    animation, _ = animation_and_markers(args.animation)
-    animation.check(model)
-    rows = simulate_dynamic(model, lambda t: animation.controls_at(t, model), animation.times, out, settings,
-                            degree=args.degree, overwrite=args.overwrite, intraoral_pressure=animation.has_pressure,
-                            source=dict(animation=str(animation.source)))
-    if MPI.COMM_WORLD.rank == 0:
-        print(f"results: {out.resolve()} ({len(rows)} frames; face.xdmf for ParaView)")
     return 0
 
 
