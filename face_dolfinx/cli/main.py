@@ -222,24 +222,33 @@ def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -
 
 
 def _object_from_args(args):
-    """(ContactSettings, poses) of ``--object sphere:RADIUS --path FILE``, or None."""
+    """(ContactSettings, poses) of ``--object sphere:RADIUS|mesh:FILE --path FILE``, or None."""
     if args.object is None and args.path is None:
         return None
     if args.object is None or args.path is None:
         raise SystemExit("--object and --path go together")
     from face_dolfinx.physics.contact import ContactSettings, Sphere, read_path
+    from face_dolfinx.physics.rigid_mesh import TriangleMesh
     kind, _, size = args.object.partition(":")
-    try:
-        radius = float(size)
-    except ValueError:
-        radius = math.nan
-    if kind != "sphere" or not radius > 0.0:
-        raise SystemExit(f"--object {args.object}: give sphere:RADIUS (mm), e.g. sphere:15")
+    if kind == "mesh" and size:
+        try:
+            obj = TriangleMesh.read(size)
+        except ValueError as error:
+            raise SystemExit(str(error)) from None
+    else:
+        try:
+            radius = float(size)
+        except ValueError:
+            radius = math.nan
+        if kind != "sphere" or not radius > 0.0:
+            raise SystemExit(f"--object {args.object}: give sphere:RADIUS (mm), e.g. sphere:15, or mesh:FILE "
+                             "(a closed triangle surface, .obj/.stl/.ply/.off)")
+        obj = Sphere(radius)
     try:
         poses = read_path(args.path)
     except ValueError as error:
         raise SystemExit(str(error)) from None
-    return ContactSettings((Sphere(radius),), (poses[0],), where=f"{args.path} (its first pose)"), poses
+    return ContactSettings((obj,), (poses[0],), where=f"{args.path} (its first pose)"), poses
 
 
 def synth(model, args) -> None:
@@ -525,10 +534,12 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="start each solve from the equilibrium of a coarse model of the same face: "
                         "the built-in face at TETS tets, or a model folder (docs/performance.md: "
                         "15 degree jaw opening at 404K tets 5x faster from the 50K face)")
-    p.add_argument("--object", metavar="sphere:RADIUS",
-                   help="a rigid sphere (radius in mm) pressed against the skin along --path (docs/contact.md)")
+    p.add_argument("--object", metavar="sphere:RADIUS|mesh:FILE",
+                   help="a rigid sphere (radius in mm) or a closed triangle surface (.obj/.stl/.ply/.off, mm) "
+                        "pressed against the skin along --path (docs/contact.md)")
     p.add_argument("--path", metavar="FILE",
-                   help="the object's centre over time: one 'x y z' line (mm, model frame) per frame")
+                   help="the object's position over time: one 'x y z' line (mm, model frame) per frame, the "
+                        "sphere's centre or the offset of the mesh file's origin")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     p = sub.add_parser("demo", help="the main job: build the face, synthesise a take, fit it",

@@ -179,14 +179,18 @@ def read_path(path) -> list[AffineMap]:
 class ContactSettings:
     """What the flesh may touch: rigid ``objects`` at their rest ``poses`` (identity if not given),
     the barrier's activation distance ``dhat`` (mm) and ``stiffness`` (kPa, about the contact
-    pressure at g = dhat / 2), and the tagged boundary ``surface`` that touches them."""
+    pressure at g = dhat / 2), and the tagged boundary ``surface`` that touches them. With
+    ``teeth``, the model's teeth (``FaceModel.teeth``, each moving with its bone frame) touch the
+    facets tagged ``teeth_surface`` (the lining of the lips and cheeks) with the same barrier."""
 
-    objects: tuple
+    objects: tuple = ()
     poses: tuple = ()
     dhat: float = 0.05
     stiffness: float = 10.0
     surface: str = "skin"
     where: str = "the contact settings"  # named in error messages (a file, an option)
+    teeth: bool = False
+    teeth_surface: str = "oral"
 
     def rest_poses(self) -> tuple:
         return tuple(self.poses) if self.poses else tuple(AffineMap() for _ in self.objects)
@@ -302,13 +306,18 @@ class ContactPotential:
         gaps = self.gaps(displacement)
         return float(gaps.min()) if gaps.size else np.inf
 
-    def check_clear(self, displacement: np.ndarray) -> None:
-        """A clear error if an object at its pose overlaps the surface or touches it (gap <= 0)."""
+    def check_clear(self, displacement: np.ndarray, margin: float = 0.0) -> None:
+        """A clear error if an object at its pose overlaps the surface or touches it (gap <= 0),
+        or comes within ``margin`` of it."""
         for obj, pose, gap in zip(self.objects, self.poses, self.gaps(displacement)):
             if gap.min() <= 0.0:
                 raise ValueError(f"{self.settings.where}: the {obj.describe()} at {pose.translation.round(3).tolist()} "
                                  f"starts inside the {self.settings.surface} ({int((gap <= 0).sum())} "
                                  f"nodes, deepest {-gap.min():.3g} mm): place it outside")
+            if gap.min() <= margin:
+                raise ValueError(f"{self.settings.where}: the {obj.describe()} comes within {gap.min():.3g} mm of "
+                                 f"{int((gap <= margin).sum())} nodes of the {self.settings.surface} at rest; it must "
+                                 f"leave more than {margin:g} mm")
 
     def contact_nodes(self, displacement: np.ndarray) -> int:
         """Number of (object, node) pairs within dhat."""
@@ -316,7 +325,8 @@ class ContactPotential:
 
     # -- the solver's energy-term interface ---------------------------------------------------
     def _terms(self, displacement: np.ndarray):
-        """Per object: active nodes, gaps, normals, inverse curvature radii."""
+        """Per object: active nodes, gaps, normals, and the gaps' curvatures (a scalar c per node,
+        d2g/dx2 = c (I - n n^T), or the 3 x 3 matrices d2g/dx2)."""
         x = self.positions(displacement)
         for obj, pose in zip(self.objects, self.poses):
             gap, normal, curvature = obj.gaps(x, pose)
@@ -353,8 +363,10 @@ class ContactPotential:
         for active, gap, normal, curvature in self._terms(x.array_r):
             first, second = barrier_derivatives(gap, self.dhat)
             nn = normal[:, :, None] * normal[:, None, :]
-            # d2b/dx2 = b'' n n^T + b' d2g/dx2, with d2g/dx2 = (I - n n^T) / |x - c| for a sphere.
-            local = second[:, None, None] * nn + (first * curvature)[:, None, None] * (identity - nn)
+            # d2b/dx2 = b'' n n^T + b' d2g/dx2, with d2g/dx2 = (I - n n^T) / |x - c| for a sphere
+            # (a scalar curvature per node) or given whole (a triangle mesh).
+            gap_hessian = curvature if curvature.ndim == 3 else curvature[:, None, None] * (identity - nn)
+            local = second[:, None, None] * nn + first[:, None, None] * gap_hessian
             np.add.at(blocks, active, scale * self.surface.areas[active][:, None, None] * local)
         owned = self.surface.owned_nodes
         touched = np.flatnonzero(np.abs(blocks[owned]).sum(axis=(1, 2)) > 0.0)
