@@ -4,7 +4,8 @@ Subcommands:
   build     generate the built-in face at a resolution and print the model folder; with --subject
             (a capture) or --surface (a scan), the face adapted to a subject
   simulate  equilibrium shapes for named expressions -> XDMF + PNG; with --object and --path, a
-            rigid object moved along a path against the face (docs/contact.md)
+            rigid object moved along a path against the face; with --contact, the lips on the
+            teeth (docs/contact.md)
   synth     a synthetic take of known truth (markers with noise, outliers, gaps) -> TRC/CSV/C3D
   fit       a take -> activations, head and jaw motion per frame (resumable), tables and report;
             a capture of your own is aligned to the model first (--correspondence, or ICP)
@@ -130,9 +131,10 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
              overwrite: bool = False, render: bool = True, coarse_model=None, contact=None) -> list[dict]:
     """Solve each expression from the previous equilibrium and write one result folder. With a
     ``coarse_model`` of the same face, each solve starts from the coarse model's equilibrium
-    (``face_dolfinx.equilibrium.coarse``). ``contact``: (``ContactSettings`` of one object, its
-    poses): the object starts at the first pose, the expressions are solved against it, then it
-    moves along the rest of the poses, one frame each (object.xdmf shows it)."""
+    (``face_dolfinx.equilibrium.coarse``). ``contact``: (``ContactSettings``, poses of its object):
+    the object starts at the first pose, the expressions are solved against it, then it moves along
+    the rest of the poses, one frame each (object.xdmf shows it); no poses: no object (the
+    settings' teeth, say)."""
     from face_dolfinx.equilibrium.coarse import CoarseStart
     from face_dolfinx.files import atomic_directory
     from face_dolfinx.results.xdmf import FaceWriter
@@ -141,7 +143,7 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
     for name in expressions:  # fail before any work, not halfway through
         _expression_controls(model, name)
     if contact is not None and coarse_model is not None:
-        raise SystemExit("--object and --coarse do not go together: the coarse model has no contact")
+        raise SystemExit("--object or --contact and --coarse do not go together: the coarse model has no contact")
     start = time.perf_counter()
     problem = FaceProblem(model, degree=degree, contact=contact[0] if contact is not None else None)
     solver = problem
@@ -165,6 +167,8 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
                 row = dict(expression=name, newton_iterations=report.newton_iterations,
                            load_steps=report.load_steps, seconds=round(report.seconds, 3),
                            max_displacement_mm=round(displacement, 4))
+                if problem.teeth_contact is not None:
+                    row["teeth"] = _contact_row(problem.teeth_contact, problem.u.x.array)
                 rows.append(row)
                 log.info("%-12s Newton %2d its, %d load step(s), %.2f s, max |u| %.2f mm", name,
                          report.newton_iterations, report.load_steps, report.seconds, displacement)
@@ -172,13 +176,21 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
                 if render:
                     _render_expression(problem, staging / f"{step:02d}_{name}.png", name)
             object_rows = (_move_object(problem, contact[1], writer, staging / "object.xdmf", len(expressions))
-                           if contact is not None else None)
+                           if contact is not None and contact[1] else None)
         if comm.rank == 0:
             (staging / "summary.json").write_text(json.dumps(
                 dict(model=str(model.path), expressions=rows, object=object_rows, ranks=comm.size,
                      coarse_model=str(coarse_model.path) if coarse_model is not None else None),
                 indent=2))
     return rows
+
+
+def _contact_row(contact, displacement) -> dict:
+    """The contact of a surface with its objects at a state, for summary.json."""
+    forces = contact.nodal_forces(displacement)
+    return dict(contact_nodes=contact.contact_nodes(displacement), min_gap_mm=round(contact.min_gap(displacement), 6),
+                force_mN=forces.sum(axis=0).round(4).tolist(),
+                pressed_mN=round(float(np.linalg.norm(forces, axis=1).sum()), 4))
 
 
 def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -> list[dict]:
@@ -222,12 +234,14 @@ def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -
 
 
 def _object_from_args(args):
-    """(ContactSettings, poses) of ``--object sphere:RADIUS|mesh:FILE --path FILE``, or None."""
+    """(ContactSettings, poses) of ``--object sphere:RADIUS|mesh:FILE --path FILE`` and
+    ``--contact`` (the lips on the teeth; no poses without an object), or None."""
+    from face_dolfinx.physics.contact import TEETH_STIFFNESS, ContactSettings
     if args.object is None and args.path is None:
-        return None
+        return (ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS, where="--contact"), ()) if args.contact else None
     if args.object is None or args.path is None:
         raise SystemExit("--object and --path go together")
-    from face_dolfinx.physics.contact import ContactSettings, Sphere, read_path
+    from face_dolfinx.physics.contact import Sphere, read_path
     from face_dolfinx.physics.rigid_mesh import TriangleMesh
     kind, _, size = args.object.partition(":")
     if kind == "mesh" and size:
@@ -248,7 +262,8 @@ def _object_from_args(args):
         poses = read_path(args.path)
     except ValueError as error:
         raise SystemExit(str(error)) from None
-    return ContactSettings((obj,), (poses[0],), where=f"{args.path} (its first pose)"), poses
+    teeth = dict(teeth=True, stiffness=TEETH_STIFFNESS) if args.contact else {}
+    return ContactSettings((obj,), (poses[0],), where=f"{args.path} (its first pose)", **teeth), poses
 
 
 def synth(model, args) -> None:
@@ -540,6 +555,8 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--path", metavar="FILE",
                    help="the object's position over time: one 'x y z' line (mm, model frame) per frame, the "
                         "sphere's centre or the offset of the mesh file's origin")
+    p.add_argument("--contact", action="store_true",
+                   help="keep the lips and cheeks outside the model's teeth (their oral lining; docs/contact.md)")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     p = sub.add_parser("demo", help="the main job: build the face, synthesise a take, fit it",

@@ -69,4 +69,4 @@ def read_triangle_surface(path) -> tuple[np.ndarray, np.ndarray]:
 def write_triangle_surface(path, points: np.ndarray, triangles: np.ndarray) -> None:
     """A triangle surface file; its format from the suffix (meshio)."""
     import meshio
-    meshio.write(Path(path), meshio.Mesh(np.asarray(points, dtype=float), [("triangle", np.asarray(triangles))]))
+    meshio.write(Path(path), meshio.Mesh(np.asarray(points, dtype=float), [("triangle", np.asarray(triangles, dtype=np.int32))]))

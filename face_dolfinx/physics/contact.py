@@ -42,6 +42,11 @@ CCD_KEEP = 0.8
 # fraction of dhat from the object, where the barrier pressure is about the stiffness.
 PUSH_GAP = 0.5
 
+# kPa: the barrier stiffness for the lips on the teeth, about their contact pressure when the
+# orbicularis oris presses them there (docs/contact.md); 10 kPa leaves gaps of a few micrometres
+# and Newton crawls.
+TEETH_STIFFNESS = 100.0
+
 # Reference tetrahedron (basix): facet i is opposite vertex i; edge e joins these vertices.
 _TET_EDGES = ((2, 3), (1, 3), (1, 2), (0, 3), (0, 2), (0, 1))
 
