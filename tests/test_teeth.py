@@ -161,3 +161,19 @@ def test_teeth_carried_to_a_subject(template):
         assert after[bone].min() > DHAT, bone
         assert np.abs(after[bone] - before[bone])[resting].max() < 0.05, bone
 
+
+
+def test_simulate_with_contact(model, template, shared_dir):
+    """run.py simulate --contact: the teeth rows of summary.json; a model without teeth is refused
+    naming it, before any solve."""
+    import json
+    from face_dolfinx.cli.main import main
+    out = shared_dir / "smile"
+    assert main(["simulate", "smile", "--model", str(model.path), "--contact", "--out", str(out), "--no-render"]) == 0
+    row = json.loads((out / "summary.json").read_text())["expressions"][0]
+    assert row["expression"] == "smile" and row["teeth"]["min_gap_mm"] > 0.0
+    bare = shared_dir / "no_teeth"
+    on_rank_0(lambda: replace(template, teeth={}).write(bare))
+    with pytest.raises(SystemExit, match=r"model .*no_teeth has no teeth"):
+        main(["simulate", "smile", "--model", str(bare), "--contact", "--out", str(shared_dir / "never"), "--no-render"])
+    assert not (shared_dir / "never").exists()
