@@ -286,8 +286,17 @@ class ContactPotential:
         if self.surface.comm.allreduce(len(facets), op=MPI.SUM) == 0:
             raise ValueError(f"{settings.where}: the contact surface {settings.surface!r} has no facets")
         self.poses = settings.rest_poses()
+        self.ignored = np.zeros(self.surface.num_nodes, dtype=bool)
         if len(self.poses) != len(self.objects):
             raise ValueError(f"{settings.where}: {len(self.objects)} objects but {len(self.poses)} poses")
+
+    def ignore(self, blocks: np.ndarray) -> None:
+        """Leave the nodes of these local dof blocks out of the contact (collective): nodes held by a
+        bone, which the barrier cannot push and whose prescribed path it must not cut short."""
+        blocks = np.asarray(blocks, dtype=np.int64)
+        flags = np.zeros((max(int(blocks.max(initial=-1)), int(self.surface.owned_blocks.max(initial=-1))) + 1, 3))
+        flags[blocks, 0] = 1.0
+        self.ignored = self.surface.gather(flags)[:, 0] > 0.5
 
     def set_poses(self, poses) -> None:
         poses = tuple(poses)
@@ -304,7 +313,9 @@ class ContactPotential:
         """(objects, nodes) signed gaps; negative inside an object."""
         x = self.positions(displacement)
         poses = self.poses if poses is None else poses
-        return np.array([obj.gaps(x, pose)[0] for obj, pose in zip(self.objects, poses)]).reshape(-1, len(x))
+        gaps = np.array([obj.gaps(x, pose)[0] for obj, pose in zip(self.objects, poses)]).reshape(-1, len(x))
+        gaps[:, self.ignored] = np.inf
+        return gaps
 
     def min_gap(self, displacement: np.ndarray) -> float:
         """Smallest gap of any node to any object (mm; negative: penetration)."""
@@ -335,7 +346,7 @@ class ContactPotential:
         x = self.positions(displacement)
         for obj, pose in zip(self.objects, self.poses):
             gap, normal, curvature = obj.gaps(x, pose)
-            active = np.flatnonzero(gap < self.dhat)
+            active = np.flatnonzero((gap < self.dhat) & ~self.ignored)
             yield active, gap[active], normal[active], curvature[active]
 
     def energy(self, x: PETSc.Vec) -> float:
@@ -389,8 +400,9 @@ class ContactPotential:
     def step_fraction(self, x: PETSc.Vec, step: PETSc.Vec, largest: float) -> float:
         """Largest t in (0, 1] such that no point of x - s t largest step, s in [0, 1], brings a
         node closer to an object than (1 - CCD_KEEP) of its gap now."""
-        points = self.positions(x.array_r)
-        moves = -largest * self.surface.gather(step.array_r)
+        kept = ~self.ignored
+        points = self.positions(x.array_r)[kept]
+        moves = -largest * self.surface.gather(step.array_r)[kept]
         fraction = 1.0
         for obj, pose in zip(self.objects, self.poses):
             gap = obj.gaps(points, pose)[0]
@@ -412,6 +424,7 @@ class ContactPotential:
         for obj, old, new in zip(self.objects, self.poses, poses):
             reach = target + np.linalg.norm(new.compose(old.inverse()).apply(x) - x, axis=1).max(initial=0.0)
             gap, normal, _ = obj.gaps(x, new)
+            gap[self.ignored] = np.inf
             close = gap < target
             x[close] += (target - gap[close])[:, None] * normal[close]
             held |= gap < reach
