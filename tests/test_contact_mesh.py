@@ -236,8 +236,8 @@ def test_simulate_moves_a_mesh_along_a_path(model, shared_dir):
     with pytest.raises(SystemExit, match="missing.obj: cannot read"):
         main(["simulate", "--model", model_path, "--object", f"mesh:{shared_dir / 'missing.obj'}", "--path", str(path),
               "--out", str(shared_dir / "never"), "--no-render"])
-    inside = shared_dir / "inside.txt"
-    on_rank_0(lambda: inside.write_text(" ".join(f"{v:.6f}" for v in cheek_path(model, [3.0])[0]) + "\n"))
+    inside, pressed_in = shared_dir / "inside.txt", cheek_path(model, [3.0])[0]   # collective
+    on_rank_0(lambda: inside.write_text(" ".join(f"{v:.6f}" for v in pressed_in) + "\n"))
     with pytest.raises(SystemExit, match=r"inside.txt .its first pose.: the triangle surface .*ball.ply .* starts inside the skin"):
         main(["simulate", "--model", model_path, "--object", f"mesh:{mesh_file}", "--path", str(inside),
               "--out", str(shared_dir / "never"), "--no-render"])
