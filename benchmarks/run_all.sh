@@ -26,6 +26,9 @@ for ranks in 1 2; do
 done
 $PYTHON $FORWARD --collect runs/forward_table.md $forward
 
+# The lips pressed on the teeth by the orbicularis oris at 0.1, with and without the teeth contact.
+record $RESULTS/contact/teeth_5k-20k_np1.jsonl $PYTHON benchmarks/contact_teeth.py --tets 5000 20000
+
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
   mpirun -n 2 $PYTHON benchmarks/tracking_speed.py --tets 400000 --frames 2 --variants fast naive

@@ -69,7 +69,7 @@ def test_barrier_is_the_ipc_toolkits():
     assert np.isnan(barrier_derivatives(np.array([-1e-3]), dhat)[0]).all()
 
 
-def _random_direction(problem, seed):
+def random_direction(problem, seed):
     """A smooth random displacement direction on the free dofs, the same on any partition."""
     X = problem.dof_coordinates
     rng = np.random.default_rng(seed)
@@ -87,7 +87,7 @@ def test_gradient_and_hessian_against_differences_of_the_energy(slab):
     the energy and of the assembled gradient, at the pressed state (active contact)."""
     contact, u = slab.contact, slab.u.vector
     assert contact.contact_nodes(slab.u.x.array) >= 4
-    v, w = _random_direction(slab, 1), _random_direction(slab, 2)
+    v, w = random_direction(slab, 1), random_direction(slab, 2)
     v.scale(1e-3 / v.norm(PETSc.NormType.NORM_INFINITY))  # mm: well inside the gaps (>= 0.02)
 
     def energy_at(h):
@@ -213,11 +213,11 @@ def test_sphere_pressed_into_the_cheek_of_the_small_face(model):
     the left zygomaticus major on. Newton never leaves a node inside the ball, the equilibrium holds,
     the bones carry the ball's force."""
     radius = 15.0
-    outside, inside = _cheek_path(model, [0.0, 1.0], radius)
+    outside, inside = cheek_path(model, [0.0, 1.0], radius)
     normal = (outside - inside) / np.linalg.norm(outside - inside)
 
     def ball(depth):
-        return AffineMap(np.eye(3), _cheek_path(model, [depth], radius)[0])
+        return AffineMap(np.eye(3), cheek_path(model, [depth], radius)[0])
 
     problem = FaceProblem(model, contact=ContactSettings((Sphere(radius),), (ball(-1.0),), dhat=0.05, stiffness=10.0))
     activations = {"zygomaticus_major_left": 0.5}
@@ -238,7 +238,7 @@ def test_sphere_pressed_into_the_cheek_of_the_small_face(model):
     assert np.abs(reaction - on_ball).max() <= 1e-5 * np.abs(on_ball).max()
 
 
-def _cheek_path(model, depths, radius=15.0):
+def cheek_path(model, depths, radius=15.0):
     """Sphere centres along the outward normal (area-weighted, of the skin triangles oriented out)
     of the left cheek, at these depths into the skin."""
     points, triangles = model.skin_surface()
@@ -256,7 +256,7 @@ def test_simulate_moves_a_sphere_along_a_path(model, builtin_model_path, shared_
     import json
     from face_dolfinx.cli.main import main
     path, out = shared_dir / "path.txt", shared_dir / "pressed"
-    centres = _cheek_path(model, [-1.0, 2.0, 4.0, 0.0])
+    centres = cheek_path(model, [-1.0, 2.0, 4.0, 0.0])
     if MPI.COMM_WORLD.rank == 0:
         path.write_text("# x y z\n" + "\n".join(" ".join(f"{v:.6f}" for v in c) for c in centres) + "\n")
     MPI.COMM_WORLD.barrier()
@@ -267,7 +267,7 @@ def test_simulate_moves_a_sphere_along_a_path(model, builtin_model_path, shared_
     assert rows[2]["contact_nodes"] >= 3 and rows[2]["min_gap_mm"] > 0.0
     assert rows[3]["contact_nodes"] == 0  # the sphere has left again
     assert (out / "object.xdmf").exists() and (out / "object.h5").exists()
-    inside, pressed_in = shared_dir / "inside.txt", _cheek_path(model, [3.0])[0]
+    inside, pressed_in = shared_dir / "inside.txt", cheek_path(model, [3.0])[0]
     if MPI.COMM_WORLD.rank == 0:
         inside.write_text(" ".join(f"{v:.6f}" for v in pressed_in) + "\n")
         (shared_dir / "bad.txt").write_text("1 2 3\n4 five 6\n")

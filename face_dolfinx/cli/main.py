@@ -4,8 +4,9 @@ Subcommands:
   build     generate the built-in face at a resolution and print the model folder; with --subject
             (a capture) or --surface (a scan), the face adapted to a subject
   simulate  equilibrium shapes for named expressions -> XDMF + PNG; with --object and --path, a
-            rigid object moved along a path against the face (docs/contact.md); with --animation,
-            an animation or fit played back into a results folder (docs/animation.md)
+            rigid object moved along a path against the face; with --contact, the lips on the
+            teeth and on each other (docs/contact.md); with --animation, an animation or fit
+            played back into a results folder (docs/animation.md)
   synth     a synthetic take of known truth (markers with noise, outliers, gaps) -> TRC/CSV/C3D
   fit       a take -> activations, head and jaw motion per frame (resumable), tables and report;
             a capture of your own is aligned to the model first (--correspondence, or ICP)
@@ -160,12 +161,14 @@ def _expression_controls(model, name: str):
 
 
 def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 1,
-             overwrite: bool = False, render: bool = True, coarse_model=None, contact=None) -> list[dict]:
+             overwrite: bool = False, render: bool = True, coarse_model=None, contact=None,
+             lip_contact=None) -> list[dict]:
     """Solve each expression from the previous equilibrium and write one result folder. With a
     ``coarse_model`` of the same face, each solve starts from the coarse model's equilibrium
-    (``face_dolfinx.equilibrium.coarse``). ``contact``: (``ContactSettings`` of one object, its
-    poses): the object starts at the first pose, the expressions are solved against it, then it
-    moves along the rest of the poses, one frame each (object.xdmf shows it)."""
+    (``face_dolfinx.equilibrium.coarse``). ``contact``: (``ContactSettings``, poses of its object):
+    the object starts at the first pose, the expressions are solved against it, then it moves along
+    the rest of the poses, one frame each (object.xdmf shows it); no poses: no object (the
+    settings' teeth, say). ``lip_contact``: ``LipContactSettings``, the lips pressing on each other."""
     from face_dolfinx.equilibrium.coarse import CoarseStart
     from face_dolfinx.files import atomic_directory
     from face_dolfinx.results.xdmf import FaceWriter
@@ -173,10 +176,11 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
     comm = MPI.COMM_WORLD
     for name in expressions:  # fail before any work, not halfway through
         _expression_controls(model, name)
-    if contact is not None and coarse_model is not None:
-        raise SystemExit("--object and --coarse do not go together: the coarse model has no contact")
+    if (contact is not None or lip_contact is not None) and coarse_model is not None:
+        raise SystemExit("--object or --contact and --coarse do not go together: the coarse model has no contact")
     start = time.perf_counter()
-    problem = FaceProblem(model, degree=degree, contact=contact[0] if contact is not None else None)
+    problem = FaceProblem(model, degree=degree, contact=contact[0] if contact is not None else None,
+                          lip_contact=lip_contact)
     solver = problem
     if coarse_model is not None:
         solver = CoarseStart(FaceProblem(coarse_model), problem)
@@ -198,6 +202,8 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
                 row = dict(expression=name, newton_iterations=report.newton_iterations,
                            load_steps=report.load_steps, seconds=round(report.seconds, 3),
                            max_displacement_mm=round(displacement, 4))
+                if problem.teeth_contact is not None:
+                    row["teeth"] = _contact_row(problem.teeth_contact, problem.u.x.array)
                 rows.append(row)
                 log.info("%-12s Newton %2d its, %d load step(s), %.2f s, max |u| %.2f mm", name,
                          report.newton_iterations, report.load_steps, report.seconds, displacement)
@@ -205,7 +211,7 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
                 if render:
                     _render_expression(problem, staging / f"{step:02d}_{name}.png", name)
             object_rows = (_move_object(problem, contact[1], writer, staging / "object.xdmf", len(expressions))
-                           if contact is not None else None)
+                           if contact is not None and contact[1] else None)
         if comm.rank == 0:
             (staging / "summary.json").write_text(json.dumps(
                 dict(model=str(model.path), expressions=rows, object=object_rows, ranks=comm.size,
@@ -500,6 +506,12 @@ def keyframe_option(text: str) -> tuple[list[float], list[float]]:
         return [float(t) for t, _, _ in pairs], [float(v) for _, _, v in pairs]
     except ValueError:
         raise SystemExit(f"--keys {text}: give TIME=ACTIVATION pairs, comma-separated, e.g. 0.5=0.8,1.2=0") from None
+def _contact_row(contact, displacement) -> dict:
+    """The contact of a surface with its objects at a state, for summary.json."""
+    forces = contact.nodal_forces(displacement)
+    return dict(contact_nodes=contact.contact_nodes(displacement), min_gap_mm=round(contact.min_gap(displacement), 6),
+                force_mN=forces.sum(axis=0).round(4).tolist(),
+                pressed_mN=round(float(np.linalg.norm(forces, axis=1).sum()), 4))
 
 
 def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -> list[dict]:
@@ -543,24 +555,36 @@ def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -
 
 
 def _object_from_args(args):
-    """(ContactSettings, poses) of ``--object sphere:RADIUS --path FILE``, or None."""
+    """(ContactSettings, poses) of ``--object sphere:RADIUS|mesh:FILE --path FILE`` and
+    ``--contact`` (the lips on the teeth; no poses without an object), or None."""
+    from face_dolfinx.physics.contact import TEETH_STIFFNESS, ContactSettings
     if args.object is None and args.path is None:
-        return None
+        return (ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS, where="--contact"), ()) if args.contact else None
     if args.object is None or args.path is None:
         raise SystemExit("--object and --path go together")
-    from face_dolfinx.physics.contact import ContactSettings, Sphere, read_path
+    from face_dolfinx.physics.contact import Sphere, read_path
+    from face_dolfinx.physics.rigid_mesh import TriangleMesh
     kind, _, size = args.object.partition(":")
-    try:
-        radius = float(size)
-    except ValueError:
-        radius = math.nan
-    if kind != "sphere" or not radius > 0.0:
-        raise SystemExit(f"--object {args.object}: give sphere:RADIUS (mm), e.g. sphere:15")
+    if kind == "mesh" and size:
+        try:
+            obj = TriangleMesh.read(size)
+        except ValueError as error:
+            raise SystemExit(str(error)) from None
+    else:
+        try:
+            radius = float(size)
+        except ValueError:
+            radius = math.nan
+        if kind != "sphere" or not radius > 0.0:
+            raise SystemExit(f"--object {args.object}: give sphere:RADIUS (mm), e.g. sphere:15, or mesh:FILE "
+                             "(a closed triangle surface, .obj/.stl/.ply/.off)")
+        obj = Sphere(radius)
     try:
         poses = read_path(args.path)
     except ValueError as error:
         raise SystemExit(str(error)) from None
-    return ContactSettings((Sphere(radius),), (poses[0],), where=f"{args.path} (its first pose)"), poses
+    teeth = dict(teeth=True, stiffness=TEETH_STIFFNESS) if args.contact else {}
+    return ContactSettings((obj,), (poses[0],), where=f"{args.path} (its first pose)", **teeth), poses
 
 
 def _lip_contact(args):
@@ -856,10 +880,12 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="start each solve from the equilibrium of a coarse model of the same face: "
                         "the built-in face at TETS tets, or a model folder (docs/performance.md: "
                         "15 degree jaw opening at 404K tets 5x faster from the 50K face)")
-    p.add_argument("--object", metavar="sphere:RADIUS",
-                   help="a rigid sphere (radius in mm) pressed against the skin along --path (docs/contact.md)")
+    p.add_argument("--object", metavar="sphere:RADIUS|mesh:FILE",
+                   help="a rigid sphere (radius in mm) or a closed triangle surface (.obj/.stl/.ply/.off, mm) "
+                        "pressed against the skin along --path (docs/contact.md)")
     p.add_argument("--path", metavar="FILE",
-                   help="the object's centre over time: one 'x y z' line (mm, model frame) per frame")
+                   help="the object's position over time: one 'x y z' line (mm, model frame) per frame, the "
+                        "sphere's centre or the offset of the mesh file's origin")
     p.add_argument("--dynamic", action="store_true",
                    help="integrate in time with inertia (docs/dynamics.md): the --animation, one frame at each of "
                         "its times, or the expressions one after another, each reached in --expression-time "
@@ -890,6 +916,9 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="with --animation: modified Newton, keeping the last MUMPS factor across iterations "
                         "and frames while each iteration cuts the residual 4-fold (faster; a resumed run then "
                         "matches an uninterrupted one to solver tolerance, not bit for bit)")
+    p.add_argument("--contact", action="store_true",
+                   help="keep the lips and cheeks outside the model's teeth (their oral lining) and the lips "
+                        "outside each other (docs/contact.md)")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     p = sub.add_parser("retarget", help="carry a fit's or an animation's motion onto another model",
@@ -1177,9 +1206,10 @@ def _main(argv=None) -> int:
     contact = _object_from_args(args)
     try:
         rows = simulate(model, args.expressions, out, degree=args.degree, overwrite=args.overwrite,
-                        render=not args.no_render, coarse_model=_coarse_model(args), contact=contact)
+                        render=not args.no_render, coarse_model=_coarse_model(args), contact=contact,
+                        lip_contact=_lip_contact(args))
     except ValueError as error:
-        if contact is None:
+        if contact is None and not args.contact:
             raise
         raise SystemExit(str(error)) from None
     if MPI.COMM_WORLD.rank == 0:

@@ -30,6 +30,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 import ufl
 
 from face_dolfinx.alignment.surface import SkinSurface
+from face_dolfinx.model.surface_file import read_triangle_surface, write_triangle_surface
 from face_dolfinx.parallel import on_rank_0
 
 MODEL_FILE, MESH_FILE, HEAVY_FILE, MUSCLES_FILE = "model.toml", "mesh.xdmf", "mesh.h5", "muscles.npz"
@@ -38,6 +39,8 @@ BOUNDARY_NAMES = ("cranium", "mandible", "skin", "free")
 # Optional tags: "oral", the free inner surface that faces the mouth's air (intraoral pressure).
 OPTIONAL_BOUNDARY_NAMES = ("oral",)
 MATERIAL_KEYS = ("mu10", "mu01", "kappa", "fiber_stress")
+# Optional rigid teeth (closed triangle surfaces), one per bone frame they move with.
+TEETH_BONES = ("cranium", "mandible")
 MUSCLE_KINDS = ("linear", "sphincter")
 UNIT_TOLERANCE = 1e-6        # |fiber| must be 1 to this
 MARKER_TOLERANCE = 1.0       # mm: markers must lie this close to the skin
@@ -115,6 +118,8 @@ class FaceModel:
     expressions: dict[str, dict]
     # Regional material overrides (``with_material``, ``face_dolfinx.model.regions``), in order.
     material_overrides: tuple = ()
+    # {bone: (points (n, 3) mm, outward triangles (m, 3))} in the bone's rest frame, on every rank.
+    teeth: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     @property
     def muscle_names(self) -> list[str]:
@@ -284,8 +289,23 @@ def load_model(path, comm=MPI.COMM_WORLD) -> FaceModel:
         here = local >= 0
         muscles.append(Muscle(entry["name"], entry["kind"], entry["peak_stress"], local[here],
                               fraction[here], fiber[here], entry["geometry"]))
+    teeth = on_rank_0(lambda: _read_teeth(folder, meta["teeth"]), comm)
     return FaceModel(folder, meta["name"], domain, tags, boundary_ids, muscles, meta["jaw"],
-                     meta["markers"], meta["landmarks"], meta["material"], meta["expressions"])
+                     meta["markers"], meta["landmarks"], meta["material"], meta["expressions"], teeth)
+
+
+def _read_teeth(folder: Path, files: dict[str, str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The teeth surfaces listed in model.toml's [teeth], read and checked (closed, oriented)."""
+    teeth = {}
+    for bone, name in files.items():
+        where = f"{folder / MODEL_FILE}: [teeth] {bone} = {name!r}"
+        if not (folder / name).is_file():
+            raise ModelError(f"{where}: no such file in the model folder")
+        try:
+            teeth[bone] = read_triangle_surface(folder / name)
+        except ValueError as error:
+            raise ModelError(f"{where}: {error}") from None
+    return teeth
 
 
 def _read_metadata(path: Path) -> dict:
@@ -386,8 +406,17 @@ def _read_metadata(path: Path) -> dict:
     info = data.get("generator", {})
     if not isinstance(info, dict):
         fail("[generator] must be a table")
+    teeth = data.get("teeth", {})
+    if not isinstance(teeth, dict):
+        fail("[teeth] must be a table of bone = file")
+    for bone, file in teeth.items():
+        if bone not in TEETH_BONES:
+            fail(f"[teeth]: unknown bone {bone!r}; the teeth move with {' or '.join(TEETH_BONES)}")
+        if not isinstance(file, str) or not file or Path(file).is_absolute():
+            fail(f"[teeth] {bone} must name a triangle surface file in the model folder, got {file!r}")
     return dict(name=str(name), material=material, boundaries=boundaries, muscles=muscles, jaw=jaw,
-                markers=sites["markers"], landmarks=sites["landmarks"], expressions=expressions, info=info)
+                markers=sites["markers"], landmarks=sites["landmarks"], expressions=expressions, info=info,
+                teeth=teeth)
 
 
 def _read_muscles(path: Path, entries: list[dict]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -556,6 +585,7 @@ class ModelArrays:
     material: dict[str, float]
     expressions: dict[str, dict]
     info: dict = field(default_factory=dict)   # the [generator] table
+    teeth: dict = field(default_factory=dict)  # {bone: (points, triangles)}, as FaceModel.teeth
 
     @cached_property
     def skin_triangles(self) -> np.ndarray:
@@ -599,7 +629,8 @@ def read_model_arrays(path, *, check: bool = True) -> ModelArrays:
                       entry["geometry"])
                for entry, (file_cells, fraction, fiber) in zip(meta["muscles"], muscle_data)]
     return ModelArrays(meta["name"], points, cells, facets, values, meta["boundaries"], muscles, meta["jaw"],
-                       meta["markers"], meta["landmarks"], meta["material"], meta["expressions"], meta["info"])
+                       meta["markers"], meta["landmarks"], meta["material"], meta["expressions"], meta["info"],
+                       _read_teeth(folder, meta["teeth"]))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -609,11 +640,12 @@ def write_model(path, *, name: str, points: np.ndarray, cells: np.ndarray, facet
                 facet_values: np.ndarray, boundary_ids: dict[str, int], muscles: list[Muscle],
                 jaw: JawGeometry, markers: dict[str, np.ndarray], landmarks: dict[str, np.ndarray],
                 material: dict[str, float], expressions: dict[str, dict],
-                info: dict | None = None) -> Path:
+                info: dict | None = None, teeth: dict | None = None) -> Path:
     """Write a model folder (serial). ``muscles[i].cells`` are cell indices into ``cells``.
 
     points (n, 3) mm; cells (m, 4) positively oriented tets; facets (k, 3) node triples with
-    tag values facet_values (k,); ``info`` is an optional [generator] table of plain values.
+    tag values facet_values (k,); ``info`` is an optional [generator] table of plain values;
+    ``teeth`` optional {bone: (points, triangles)} closed surfaces, written as teeth_<bone>.ply.
     """
     folder = Path(path)
     folder.mkdir(parents=True, exist_ok=True)
@@ -624,8 +656,14 @@ def write_model(path, *, name: str, points: np.ndarray, cells: np.ndarray, facet
         for part, value in (("cells", np.asarray(m.cells, np.int64)),
                             ("fraction", np.asarray(m.fraction, float)),
                             ("fiber", np.asarray(m.fiber, float).reshape(-1, 3)))})
+    teeth_files = {}
+    for bone, (teeth_points, teeth_triangles) in (teeth or {}).items():
+        if bone not in TEETH_BONES:
+            raise ValueError(f"teeth on {bone!r}: the teeth move with {' or '.join(TEETH_BONES)}")
+        teeth_files[bone] = f"teeth_{bone}.ply"
+        write_triangle_surface(folder / teeth_files[bone], teeth_points, teeth_triangles)
     (folder / MODEL_FILE).write_text(_model_toml(name, boundary_ids, muscles, jaw, markers, landmarks,
-                                                 material, expressions, info))
+                                                 material, expressions, info, teeth_files))
     return folder
 
 
@@ -663,7 +701,8 @@ def _write_mesh(folder: Path, points, cells, facets, values) -> None:
 """)
 
 
-def _model_toml(name, boundary_ids, muscles, jaw, markers, landmarks, material, expressions, info) -> str:
+def _model_toml(name, boundary_ids, muscles, jaw, markers, landmarks, material, expressions, info,
+                teeth_files) -> str:
     lines = [f"name = {toml_value(name)}", 'units = { length = "mm", stress = "kPa" }', ""]
     if info:
         lines += ["[generator]"] + [f"{_key(k)} = {toml_value(v)}" for k, v in info.items()] + [""]
@@ -677,6 +716,8 @@ def _model_toml(name, boundary_ids, muscles, jaw, markers, landmarks, material, 
     lines += ["[jaw]", f"condyle_right = {toml_value(jaw.condyle_right)}", f"condyle_left = {toml_value(jaw.condyle_left)}",
               f"slide_direction = {toml_value(jaw.v)}", f"track_length = {toml_value(jaw.track_length)}",
               f"max_opening_sine = {toml_value(jaw.max_opening_sine)}", ""]
+    if teeth_files:
+        lines += ["[teeth]"] + [f"{bone} = {toml_value(file)}" for bone, file in teeth_files.items()] + [""]
     for title, sites in (("markers", markers), ("landmarks", landmarks)):
         lines += [f"[{title}]"] + [f"{_key(k)} = {toml_value(v)}" for k, v in sites.items()] + [""]
     for expression, activations in expressions.items():

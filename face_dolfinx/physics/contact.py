@@ -42,6 +42,11 @@ CCD_KEEP = 0.8
 # fraction of dhat from the object, where the barrier pressure is about the stiffness.
 PUSH_GAP = 0.5
 
+# kPa: the barrier stiffness for the lips on the teeth, about their contact pressure when the
+# orbicularis oris presses them there (docs/contact.md); 10 kPa leaves gaps of a few micrometres
+# and Newton crawls.
+TEETH_STIFFNESS = 100.0
+
 # Reference tetrahedron (basix): facet i is opposite vertex i; edge e joins these vertices.
 _TET_EDGES = ((2, 3), (1, 3), (1, 2), (0, 3), (0, 2), (0, 1))
 
@@ -179,14 +184,18 @@ def read_path(path) -> list[AffineMap]:
 class ContactSettings:
     """What the flesh may touch: rigid ``objects`` at their rest ``poses`` (identity if not given),
     the barrier's activation distance ``dhat`` (mm) and ``stiffness`` (kPa, about the contact
-    pressure at g = dhat / 2), and the tagged boundary ``surface`` that touches them."""
+    pressure at g = dhat / 2), and the tagged boundary ``surface`` that touches them. With
+    ``teeth``, the model's teeth (``FaceModel.teeth``, each moving with its bone frame) touch the
+    facets tagged ``teeth_surface`` (the lining of the lips and cheeks) with the same barrier."""
 
-    objects: tuple
+    objects: tuple = ()
     poses: tuple = ()
     dhat: float = 0.05
     stiffness: float = 10.0
     surface: str = "skin"
     where: str = "the contact settings"  # named in error messages (a file, an option)
+    teeth: bool = False
+    teeth_surface: str = "oral"
 
     def rest_poses(self) -> tuple:
         return tuple(self.poses) if self.poses else tuple(AffineMap() for _ in self.objects)
@@ -277,8 +286,17 @@ class ContactPotential:
         if self.surface.comm.allreduce(len(facets), op=MPI.SUM) == 0:
             raise ValueError(f"{settings.where}: the contact surface {settings.surface!r} has no facets")
         self.poses = settings.rest_poses()
+        self.ignored = np.zeros(self.surface.num_nodes, dtype=bool)
         if len(self.poses) != len(self.objects):
             raise ValueError(f"{settings.where}: {len(self.objects)} objects but {len(self.poses)} poses")
+
+    def ignore(self, blocks: np.ndarray) -> None:
+        """Leave the nodes of these local dof blocks out of the contact (collective): nodes held by a
+        bone, which the barrier cannot push and whose prescribed path it must not cut short."""
+        blocks = np.asarray(blocks, dtype=np.int64)
+        flags = np.zeros((max(int(blocks.max(initial=-1)), int(self.surface.owned_blocks.max(initial=-1))) + 1, 3))
+        flags[blocks, 0] = 1.0
+        self.ignored = self.surface.gather(flags)[:, 0] > 0.5
 
     def set_poses(self, poses) -> None:
         poses = tuple(poses)
@@ -295,20 +313,27 @@ class ContactPotential:
         """(objects, nodes) signed gaps; negative inside an object."""
         x = self.positions(displacement)
         poses = self.poses if poses is None else poses
-        return np.array([obj.gaps(x, pose)[0] for obj, pose in zip(self.objects, poses)]).reshape(-1, len(x))
+        gaps = np.array([obj.gaps(x, pose)[0] for obj, pose in zip(self.objects, poses)]).reshape(-1, len(x))
+        gaps[:, self.ignored] = np.inf
+        return gaps
 
     def min_gap(self, displacement: np.ndarray) -> float:
         """Smallest gap of any node to any object (mm; negative: penetration)."""
         gaps = self.gaps(displacement)
         return float(gaps.min()) if gaps.size else np.inf
 
-    def check_clear(self, displacement: np.ndarray) -> None:
-        """A clear error if an object at its pose overlaps the surface or touches it (gap <= 0)."""
+    def check_clear(self, displacement: np.ndarray, margin: float = 0.0) -> None:
+        """A clear error if an object at its pose overlaps the surface or touches it (gap <= 0),
+        or comes within ``margin`` of it."""
         for obj, pose, gap in zip(self.objects, self.poses, self.gaps(displacement)):
             if gap.min() <= 0.0:
                 raise ValueError(f"{self.settings.where}: the {obj.describe()} at {pose.translation.round(3).tolist()} "
                                  f"starts inside the {self.settings.surface} ({int((gap <= 0).sum())} "
                                  f"nodes, deepest {-gap.min():.3g} mm): place it outside")
+            if gap.min() <= margin:
+                raise ValueError(f"{self.settings.where}: the {obj.describe()} comes within {gap.min():.3g} mm of "
+                                 f"{int((gap <= margin).sum())} nodes of the {self.settings.surface} at rest; it must "
+                                 f"leave more than {margin:g} mm")
 
     def contact_nodes(self, displacement: np.ndarray) -> int:
         """Number of (object, node) pairs within dhat."""
@@ -316,11 +341,12 @@ class ContactPotential:
 
     # -- the solver's energy-term interface ---------------------------------------------------
     def _terms(self, displacement: np.ndarray):
-        """Per object: active nodes, gaps, normals, inverse curvature radii."""
+        """Per object: active nodes, gaps, normals, and the gaps' curvatures (a scalar c per node,
+        d2g/dx2 = c (I - n n^T), or the 3 x 3 matrices d2g/dx2)."""
         x = self.positions(displacement)
         for obj, pose in zip(self.objects, self.poses):
             gap, normal, curvature = obj.gaps(x, pose)
-            active = np.flatnonzero(gap < self.dhat)
+            active = np.flatnonzero((gap < self.dhat) & ~self.ignored)
             yield active, gap[active], normal[active], curvature[active]
 
     def energy(self, x: PETSc.Vec) -> float:
@@ -353,8 +379,10 @@ class ContactPotential:
         for active, gap, normal, curvature in self._terms(x.array_r):
             first, second = barrier_derivatives(gap, self.dhat)
             nn = normal[:, :, None] * normal[:, None, :]
-            # d2b/dx2 = b'' n n^T + b' d2g/dx2, with d2g/dx2 = (I - n n^T) / |x - c| for a sphere.
-            local = second[:, None, None] * nn + (first * curvature)[:, None, None] * (identity - nn)
+            # d2b/dx2 = b'' n n^T + b' d2g/dx2, with d2g/dx2 = (I - n n^T) / |x - c| for a sphere
+            # (a scalar curvature per node) or given whole (a triangle mesh).
+            gap_hessian = curvature if curvature.ndim == 3 else curvature[:, None, None] * (identity - nn)
+            local = second[:, None, None] * nn + first[:, None, None] * gap_hessian
             np.add.at(blocks, active, scale * self.surface.areas[active][:, None, None] * local)
         owned = self.surface.owned_nodes
         touched = np.flatnonzero(np.abs(blocks[owned]).sum(axis=(1, 2)) > 0.0)
@@ -372,8 +400,9 @@ class ContactPotential:
     def step_fraction(self, x: PETSc.Vec, step: PETSc.Vec, largest: float) -> float:
         """Largest t in (0, 1] such that no point of x - s t largest step, s in [0, 1], brings a
         node closer to an object than (1 - CCD_KEEP) of its gap now."""
-        points = self.positions(x.array_r)
-        moves = -largest * self.surface.gather(step.array_r)
+        kept = ~self.ignored
+        points = self.positions(x.array_r)[kept]
+        moves = -largest * self.surface.gather(step.array_r)[kept]
         fraction = 1.0
         for obj, pose in zip(self.objects, self.poses):
             gap = obj.gaps(points, pose)[0]
@@ -395,6 +424,7 @@ class ContactPotential:
         for obj, old, new in zip(self.objects, self.poses, poses):
             reach = target + np.linalg.norm(new.compose(old.inverse()).apply(x) - x, axis=1).max(initial=0.0)
             gap, normal, _ = obj.gaps(x, new)
+            gap[self.ignored] = np.inf
             close = gap < target
             x[close] += (target - gap[close])[:, None] * normal[close]
             held |= gap < reach

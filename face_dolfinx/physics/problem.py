@@ -10,7 +10,10 @@ Rigid kinematic objects (``contact``, ``face_dolfinx.physics.contact``: a sphere
 press on a tagged surface (the skin) through a barrier energy the solver adds to the flesh's; their
 poses are controls (``Controls.objects``), each solve pushes the surface out of an object's new pose
 before Newton (the barrier needs a start that overlaps nothing), and the continuation fallback walks
-the poses like the other controls.
+the poses like the other controls. With ``ContactSettings(teeth=True)`` the model's teeth (closed
+triangle surfaces, ``FaceModel.teeth``) hold the lining of the lips and cheeks by the same barrier;
+their poses are not controls of their own but the bone frames they are fixed to (the upper teeth
+the cranium's, the lower ones the mandible's), so opening the jaw moves the lower teeth.
 
 The intraoral pressure (``intraoral_pressure=True``, a model with an ``oral`` surface) is the air
 pressure in the mouth above the ambient one, a follower load on the lining of the lips and cheeks:
@@ -42,9 +45,10 @@ from face_dolfinx.model.folder import cell_midpoints
 from face_dolfinx.model.regions import material_fields
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
-from face_dolfinx.physics.contact import ContactPotential, ContactSettings
+from face_dolfinx.physics.contact import CCD_KEEP, PUSH_GAP, ContactPotential, ContactSettings
 from face_dolfinx.physics.self_contact import LIP_NEWTON_ITERATIONS, LipContact, LipContactSettings, lip_facets
 from face_dolfinx.physics.material import FaceMaterial, FiberSlot
+from face_dolfinx.physics.rigid_mesh import TriangleMesh
 
 log = logging.getLogger(__name__)
 
@@ -198,6 +202,8 @@ class FaceProblem:
         ``contact.surface`` (module docstring, docs/contact.md); their poses join the controls.
     lip_contact : ``LipContactSettings``: the upper and lower lip press on each other instead of
         passing through (``face_dolfinx.physics.self_contact``, docs/contact.md).
+        With ``contact.teeth`` the model's teeth touch the facets tagged ``contact.teeth_surface``
+        (``teeth_contact``), moving with their bones.
     """
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
@@ -262,16 +268,18 @@ class FaceProblem:
         # With the follower pressure it is not symmetric (module docstring): LU.
         general = {"pc_type": "lu"} if intraoral_pressure else {}
         self.contact = None
-        if contact is not None:
+        if contact is not None and (contact.objects or not contact.teeth):
             tag = self._surface_tag(contact.surface, f"{contact.where}: model {model.path} has no facets tagged "
                                                      f"{contact.surface!r} to touch the objects")
             self.contact = ContactPotential(self.V, model.facet_tags.find(tag), contact)
         if self.contact is not None:
             self.contact.check_clear(self.u.x.array)
+        self.teeth_bones = tuple(model.teeth) if contact is not None and contact.teeth else ()
+        self.teeth_contact = self._teeth_contact(contact) if contact is not None and contact.teeth else None
         self.lips = None
         if lip_contact is not None:
             self.lips = LipContact(self.V, *lip_facets(model, lip_contact), lip_contact, self.bone_blocks)
-        energy_terms = tuple(term for term in (self.contact, self.lips) if term is not None)
+        energy_terms = tuple(term for term in (self.contact, self.teeth_contact, self.lips) if term is not None)
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
         # closed by the orbicularis oris at 1): Newton is given room before continuation.
         lip_newton = {"snes_max_it": LIP_NEWTON_ITERATIONS} if self.lips is not None else {}
@@ -300,8 +308,8 @@ class FaceProblem:
         starting from the current displacement and controls."""
         from face_dolfinx.equilibrium.dynamics import DynamicFace, DynamicSettings, TimeLevels
         settings = settings if settings is not None else DynamicSettings()
-        if self.contact is not None or self.lips is not None:
-            raise ValueError("dynamic re-simulation with contact (objects or the lips) is not supported: the barrier "
+        if self.contact is not None or self.teeth_contact is not None or self.lips is not None:
+            raise ValueError("dynamic re-simulation with contact (objects, teeth or the lips) is not supported: the barrier "
                              "has no time step control; simulate without --object/--contact")
         levels = TimeLevels(self.V)
         # rho u.v integrated exactly for degree p: 2p.
@@ -329,6 +337,29 @@ class FaceProblem:
         if count == 0:
             raise ValueError(missing)
         return tag
+
+    def _teeth_contact(self, settings: ContactSettings) -> ContactPotential:
+        """The barrier of the model's teeth against the facets tagged ``settings.teeth_surface``;
+        refuses teeth that a node of that surface is inside or within dhat of at rest."""
+        where = f"model {self.model.path} ([teeth] of its model.toml)"
+        if not self.model.teeth:
+            raise ValueError(f"model {self.model.path} has no teeth ([teeth] in its model.toml, "
+                             "docs/model_format.md): contact with the teeth needs them")
+        tag = self._surface_tag(settings.teeth_surface, f"{where}: no facets tagged {settings.teeth_surface!r} "
+                                                        "to rest on the teeth")
+        objects = tuple(TriangleMesh(*self.model.teeth[bone], name=f"teeth on the {bone}") for bone in self.teeth_bones)
+        teeth = ContactPotential(self.V, self.model.facet_tags.find(tag),
+                                 replace(settings, objects=objects, poses=(), surface=settings.teeth_surface, where=where))
+        # The bones' nodes move with their own teeth; the barrier must not cut their path short.
+        teeth.ignore(self.bone_blocks)
+        teeth.check_clear(self.u.x.array, margin=settings.dhat)
+        return teeth
+
+    def teeth_poses(self, controls: Controls) -> tuple:
+        """World poses of the teeth: the upper ones in the cranium frame, the lower ones in the
+        mandible's (the jaw frame composed with the cranium's)."""
+        return tuple(controls.cranium if bone == "cranium" else controls.cranium.compose(controls.jaw)
+                     for bone in self.teeth_bones)
 
     def rest_controls(self) -> Controls:
         """No activation, bones in their rest frames, objects at their rest poses."""
@@ -408,6 +439,8 @@ class FaceProblem:
         self.pressure.value = controls.pressure
         if self.contact is not None:
             self.contact.set_poses(controls.objects)
+        if self.teeth_contact is not None:
+            self.teeth_contact.set_poses(self.teeth_poses(controls))
         values = self.bone_displacement.x.array.reshape(-1, 3)
         values[self.bone_blocks] = (self.bone_positions(controls.cranium, controls.jaw)
                                     - self.dof_coordinates[self.bone_blocks])
@@ -452,7 +485,7 @@ class FaceProblem:
             if self.lips is not None:  # ... or let the lips pass through each other
                 fraction *= self.lips.admissible_fraction(equilibrium, equilibrium + fraction * (guess - equilibrium))
             self.u.x.array[:] = equilibrium + fraction * (guess - equilibrium)
-            held = self._clear_objects(target.objects)
+            held = self._clear_objects(target)
             self.set_controls(target)
             ok, iterations, why = self.solver.newton()
             if ok:
@@ -472,17 +505,27 @@ class FaceProblem:
             new = start.cranium.interpolate(target.cranium, t1)
             if not old.same_as(new):
                 self._move_rigidly(old, new)
-            held.append(self._clear_objects(start.interpolate(target, t1).objects))
+            held.append(self._clear_objects(start.interpolate(target, t1)))
 
         report = self.solver.solve_continuation(controls_at, predictor=predictor,
                                                 max_halvings=max_halvings)
         self.set_controls(target)
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
 
-    def _clear_objects(self, poses) -> int:
-        """Move the objects to ``poses`` (``ContactPotential.move_to``): a start that Newton's
-        barrier accepts, near the equilibrium. Returns the Newton iterations it took."""
-        return self.contact.move_to(poses, self.solver) if self.contact is not None else 0
+    def _clear_objects(self, controls: Controls) -> int:
+        """Move the objects to their poses in ``controls`` (``ContactPotential.move_to``): a start
+        that Newton's barrier accepts, near the equilibrium. The teeth move so only where their new
+        poses would take more of a lining node's gap than a collision-free step may and leave it
+        closer than PUSH_GAP dhat (the bones closing in on the lining); otherwise they move with the
+        bone frames in the solve. Returns the Newton iterations it took."""
+        iterations = self.contact.move_to(controls.objects, self.solver) if self.contact is not None else 0
+        if self.teeth_contact is not None:
+            poses = self.teeth_poses(controls)
+            now = self.teeth_contact.gaps(self.u.x.array)
+            moved = self.teeth_contact.gaps(self.u.x.array, poses)
+            if ((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * self.teeth_contact.dhat)).any():
+                iterations += self.teeth_contact.move_to(poses, self.solver)
+        return iterations
 
     def active_force(self, muscle: int, out: PETSc.Vec | None = None) -> PETSc.Vec:
         """f_i = df/da_i at the current shape (zero on Dirichlet dofs): the right-hand side of

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from mpi4py import MPI
 
 from face_dolfinx.files import atomic_directory
@@ -66,6 +67,10 @@ MAX_SURFACE_MATCH_MM = 20.0
 # Flesh nodes whose motion defines the smooth map for points off the mesh (the jaw's condyles,
 # muscle geometry): enough to follow the elastic solve's large-scale motion, cheap to fit.
 FAR_FIELD_NODES = 400
+# Teeth: they follow a smooth map fitted to the motion of the flesh nodes within this distance (mm)
+# of them (the lining they rest on), at most this many, so that the lining's clearance is kept.
+TEETH_NEIGHBOURHOOD_MM = 10.0
+TEETH_NODES = 600
 # Stiffer registrations tried when the flesh cannot follow the softest one.
 MAX_STIFFER_STEPS = 3
 # The thin-plate spline reproduces an affine motion exactly, and its fitted map is smooth (C1)
@@ -315,7 +320,8 @@ def carry_model(template: ModelArrays, skin_targets: np.ndarray, *, name: str) -
     the rest of the skin's motion is spread into the flesh by the pseudo-elastic solve
     (``elastic.PseudoElasticCarry``). Fibers follow each cell's deformation gradient; landmarks and
     marker sites stay at their places on the skin triangles; points off the mesh (muscle
-    geometry, the jaw's condyles) follow a smooth map fitted to the flesh nodes' motion.
+    geometry, the jaw's condyles) follow a smooth map fitted to the flesh nodes' motion; the teeth
+    one fitted to the motion of the flesh around them (``_carry_teeth``).
     SubjectError if no equilibrium is found or a tet inverts or flattens.
     """
     skin_nodes = template.skin_nodes
@@ -365,7 +371,8 @@ def carry_model(template: ModelArrays, skin_targets: np.ndarray, *, name: str) -
     stretch = _stretch(far_field, jaw.midpoint, jaw.v)
     new_jaw = JawGeometry.from_condyles(far_field.apply(jaw.condyle_right), far_field.apply(jaw.condyle_left), slide,
                                         jaw.track_length * stretch, jaw.max_opening_sine)
-    new = replace(template, name=name, points=points, muscles=muscles, jaw=new_jaw, info={})
+    new = replace(template, name=name, points=points, muscles=muscles, jaw=new_jaw, info={},
+                  teeth=_carry_teeth(template, points))
     new.markers = _on_skin(template, points, template.markers)
     new.landmarks = _on_skin(template, points, template.landmarks)
     volumes_after = _muscle_volumes(new, points)
@@ -375,6 +382,20 @@ def carry_model(template: ModelArrays, skin_targets: np.ndarray, *, name: str) -
                            for i, m in enumerate(template.muscles)},
         elastic_newton_iterations=report.newton_iterations, elastic_load_steps=report.load_steps)
     return new, measures
+
+
+def _carry_teeth(template: ModelArrays, points: np.ndarray) -> dict:
+    """The template's teeth moved by a thin-plate warp interpolating the motion of the flesh
+    nodes near them (the lining they rest on moves the same way, so the clearance is kept)."""
+    teeth = {}
+    for bone, (teeth_points, triangles) in template.teeth.items():
+        near = np.flatnonzero(cKDTree(teeth_points).query(template.points)[0] <= TEETH_NEIGHBOURHOOD_MM)
+        if len(near) < 4:
+            near = _spread_nodes(template.points, FAR_FIELD_NODES)
+        near = near[_spread_nodes(template.points[near], TEETH_NODES)]
+        warp = RBFWarp.fit(template.points[near], points[near], kernel=WARP_KERNEL)
+        teeth[bone] = (warp.apply(teeth_points), triangles)
+    return teeth
 
 
 def _affine_fit(source, target) -> np.ndarray:

@@ -9,6 +9,7 @@ The pipeline (each step in its own module):
   attachments.py  facet tags: cranium, mandible, skin, free
   muscles.py      volume fractions and fibers of the 32 muscles
   sites.py        markers and landmarks on the skin
+  teeth.py        the rigid upper and lower teeth behind the lips
 and model.write_model writes the folder.
 
 Models are cached under meshes/cache/<resolution>-<hash>/, the hash covering the description
@@ -33,6 +34,7 @@ from .extrude import extrude
 from .muscles import MuscleEmbedder
 from .openings import all_openings
 from .sites import place_on_skin, site_angles
+from .teeth import dental_arch
 
 log = logging.getLogger(__name__)
 
@@ -135,5 +137,7 @@ def generate(description: Description, target_tets: int, folder: Path) -> dict:
                                                    jaw.max_opening_sine),
         markers=place_on_skin(marker_angles, planar, skin_nodes),
         landmarks=place_on_skin(landmark_angles, planar, skin_nodes),
-        material=description.material, expressions=description.expressions, info=info)
+        material=description.material, expressions=description.expressions, info=info,
+        teeth={"cranium": dental_arch(shape, description.teeth.upper, description.teeth),
+               "mandible": dental_arch(shape, description.teeth.lower, description.teeth)})
     return info

@@ -73,6 +73,23 @@ class Jaw:
 
 
 @dataclass(frozen=True)
+class DentalArch:
+    """The teeth and gum of one jaw: a curved plate over a (theta, phi) window behind the lips."""
+
+    theta: tuple[float, float]   # degrees
+    phi: tuple[float, float]     # degrees
+
+
+@dataclass(frozen=True)
+class Teeth:
+    upper: DentalArch            # on the cranium
+    lower: DentalArch            # on the mandible
+    clearance: float             # mm from the inner surface of the flesh, along the rays
+    depth: float                 # mm, the plates' thickness along the rays
+    spacing: float               # mm, the triangles' size
+
+
+@dataclass(frozen=True)
 class MuscleSpec:
     """One muscle of the description (before mirroring and splitting)."""
 
@@ -121,6 +138,7 @@ class Description:
     mesh: MeshSettings
     attachments: Attachments
     jaw: Jaw
+    teeth: Teeth
     material: dict[str, float]
     muscles: tuple[MuscleSpec, ...]
     markers: tuple[SiteGroup, ...]
@@ -166,6 +184,7 @@ def load_description(path: Path) -> Description:
                                 read.points(attachments, "oral", 2), read.number(attachments, "eye_margin")),
         jaw=Jaw(read.vector(jaw, "condyle_left", 3), read.vector(jaw, "slide_direction", 3),
                 read.number(jaw, "track_length"), read.number(jaw, "max_opening_sine")),
+        teeth=read.teeth(read.table(data, "teeth")),
         material={key: read.number(read.table(data, "material"), key) for key in read.table(data, "material")},
         muscles=tuple(read.muscle(m) for m in read.sequence(data, "muscles")),
         markers=read.sites(data, "markers"),
@@ -228,6 +247,19 @@ class _Reader:
         if x.shape != y.shape or x.ndim != 1 or np.any(np.diff(x) <= 0):
             self.fail(f"{key!r}: phi must increase and match value in length")
         return Table(tuple(x), tuple(y))
+
+    def teeth(self, table: dict) -> Teeth:
+        arches = {}
+        for key in ("upper", "lower"):
+            arch = self.table(table, key)
+            theta, phi = tuple(self.vector(arch, "theta", 2)), tuple(self.vector(arch, "phi", 2))
+            if not (theta[0] < theta[1] and phi[0] < phi[1]):
+                self.fail(f"teeth.{key}: theta and phi must be increasing ranges")
+            arches[key] = DentalArch(theta, phi)
+        sizes = {key: self.number(table, key) for key in ("clearance", "depth", "spacing")}
+        if min(sizes.values()) <= 0.0:
+            self.fail(f"teeth: clearance, depth and spacing must be positive, got {sizes}")
+        return Teeth(**arches, **sizes)
 
     def refinement(self, table: dict, key: str) -> Refinement:
         entry = self.table(table, key)

@@ -1,0 +1,243 @@
+"""Rigid triangle-mesh contact objects (face_dolfinx.physics.rigid_mesh): distances, gradients and
+Hessians against the IPC Toolkit's point-triangle ones, signs against analytic solids, the barrier's
+gradient and Hessian against differences of its energy, no node inside at any Newton iterate, the
+tessellated sphere against the analytic one, files of every format, bad input, and
+``run.py simulate --object mesh:FILE``.
+"""
+from mpi4py import MPI
+from petsc4py import PETSc
+import meshio
+import numpy as np
+import pytest
+import dolfinx.fem.petsc as fem_petsc
+
+import ipctk
+from face_dolfinx.model.bones import AffineMap, rotation
+from face_dolfinx.physics.contact import ContactSettings, Sphere
+from face_dolfinx.physics.problem import FaceProblem
+from face_dolfinx.model.surface_file import read_triangle_surface
+from face_dolfinx.physics.rigid_mesh import TriangleMesh, closest_points
+from test_contact import ACTIVATIONS, RADIUS, cheek_path, random_direction, skin_slab, sphere_at
+
+ICOSPHERE = Sphere(RADIUS).surface(4)  # 5120 triangles, edges about 0.6 mm
+
+
+def box(size=(2.0, 3.0, 4.0)):
+    """An axis-aligned box [0, size] as 12 outward triangles."""
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=float) * size
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    triangles = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+    return corners, np.array(triangles)
+
+
+def test_distances_and_hessians_are_the_ipc_toolkits():
+    """Gap, normal and gap Hessian of points around a tilted tetrahedron (face, edge and vertex
+    regions) against ipctk's point-triangle distance of the closest triangle and its Hessian."""
+    points = np.array([[0.0, 0.0, 0.0], [3.0, 0.2, 0.1], [0.5, 2.5, -0.3], [0.7, 0.4, 2.2]])
+    mesh = TriangleMesh(points, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+    pose = AffineMap(rotation(np.array([0.0, 0.6, 0.8]), 0.7), [5.0, -2.0, 1.0])
+    rng = np.random.default_rng(1)
+    local = rng.uniform(-1.5, 4.0, size=(400, 3))
+    gap, normal, hessian = mesh.gaps(pose.apply(local), pose)
+    seen = set()
+    for x, g, n, h in zip(local, gap, normal, hessian):
+        squared = [ipctk.point_triangle_distance(x, *corners) for corners in mesh.corners]
+        k = int(np.argmin(squared))
+        d = np.sqrt(squared[k])
+        assert abs(g) == pytest.approx(d, rel=1e-12, abs=1e-12)
+        if g <= 0.0:
+            continue
+        # d(d^2)/dx = 2 d n, d2(d^2)/dx2 = 2 n n^T + 2 d d2g/dx2; the point's 3 x 3 block, in the world.
+        R = pose.matrix
+        grad = ipctk.point_triangle_distance_gradient(x, *mesh.corners[k])[:3]
+        assert R @ grad / (2 * d) == pytest.approx(n, abs=1e-10)
+        full = ipctk.point_triangle_distance_hessian(x, *mesh.corners[k])[:3, :3]
+        local_n = grad / (2 * d)
+        expected = R @ ((full / 2 - np.outer(local_n, local_n)) / d) @ R.T
+        assert np.abs(h - expected).max() <= 1e-9 * max(1.0, np.abs(expected).max())
+        seen.add(int(closest_points(x[None], *mesh.corners[k][:, None, :])[1][0]))
+    assert seen == set(range(7))  # every region: the face, three edges, three vertices
+
+
+def test_signs_against_analytic_solids():
+    corners, triangles = box()
+    mesh = TriangleMesh(corners, triangles[:, ::-1])   # inward triangles are turned outward
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-1.0, 5.0, size=(3000, 3))
+    inside = (x > 0).all(axis=1) & (x < (2.0, 3.0, 4.0)).all(axis=1)
+    outside_distance = np.linalg.norm(np.maximum(np.maximum(-x, x - (2.0, 3.0, 4.0)), 0.0), axis=1)
+    inside_distance = np.minimum(x, (2.0, 3.0, 4.0) - x).min(axis=1)
+    gap = mesh.gaps(x, AffineMap())[0]
+    assert np.array_equal(gap > 0, ~inside)
+    assert np.abs(gap - np.where(inside, -inside_distance, outside_distance)).max() < 1e-12
+    sphere = TriangleMesh(*ICOSPHERE)
+    around = (x - 2.0) * 4.0   # points from 0 to 12 mm from its centre
+    r = np.linalg.norm(around, axis=1)
+    gap = sphere.gaps(around, AffineMap())[0]
+    # The inscribed polyhedron lies between the sphere and its faces' planes.
+    sagitta = RADIUS - np.einsum("ij,ij->i", sphere.normals, sphere.corners[:, 0]).min() + 1e-12
+    assert sagitta < 0.015
+    clear = np.abs(r - RADIUS) > sagitta
+    assert np.array_equal((gap > 0)[clear], (r > RADIUS)[clear])
+    assert np.abs(gap - (r - RADIUS)).max() <= sagitta
+
+
+def test_collision_free_step_bound():
+    """first_contact is a lower bound of the exact time at which a point comes within the
+    clearance (measured by bisection along the step), and lets a point slide along a face."""
+    corners, triangles = box((4.0, 4.0, 4.0))
+    mesh = TriangleMesh(corners, triangles)
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-2.0, 6.0, size=(150, 3))
+    x = x[mesh.gaps(x, AffineMap())[0] > 0.05]
+    steps = rng.normal(size=x.shape) * 3.0
+    clearance = 0.2 * mesh.gaps(x, AffineMap())[0]
+    bound = mesh.first_contact(x, steps, AffineMap(), clearance)
+    times = np.linspace(0.0, 1.0, 1001)
+    for point, step, c, t in zip(x, steps, clearance, bound):
+        gaps = mesh.gaps(point + times[:, None] * step, AffineMap())[0]
+        hit = np.flatnonzero(gaps <= c)
+        exact = times[hit[0]] if hit.size else np.inf
+        assert t <= exact + 1e-12
+    # Sliding 1 mm along the top face at a gap of 0.01 mm (a step bound by the gap alone: 0.008).
+    slide = mesh.first_contact(np.array([[1.0, 1.0, 4.01]]), np.array([[1.0, 0.0, 0.0]]), AffineMap(), np.array([0.002]))
+    assert slide[0] >= 1.0
+
+
+def test_files_and_bad_input(tmp_path):
+    corners, triangles = box()
+    for suffix in ("obj", "stl", "ply", "off"):
+        path = tmp_path / f"box.{suffix}"
+        meshio.write(path, meshio.Mesh(corners, [("triangle", triangles)]), **({"binary": False} if suffix == "stl" else {}))
+        points, read = read_triangle_surface(path)
+        assert len(read) == 12 and len(points) == 8
+        volume = np.einsum("ij,ij->i", points[read[:, 0]], np.cross(points[read[:, 1]], points[read[:, 2]])).sum() / 6
+        assert volume == pytest.approx(24.0)
+    meshio.write(tmp_path / "open.obj", meshio.Mesh(corners, [("triangle", triangles[1:])]))
+    with pytest.raises(ValueError, match=r"open.obj: not a closed surface: 3 edges are open"):
+        TriangleMesh.read(tmp_path / "open.obj")
+    flipped = triangles.copy()
+    flipped[0] = flipped[0, ::-1]
+    meshio.write(tmp_path / "flipped.off", meshio.Mesh(corners, [("triangle", flipped)]))
+    with pytest.raises(ValueError, match="flipped.off: the triangles are not consistently oriented"):
+        TriangleMesh.read(tmp_path / "flipped.off")
+    meshio.write(tmp_path / "quads.obj", meshio.Mesh(corners, [("quad", np.array([[0, 1, 3, 2]]))]))
+    with pytest.raises(ValueError, match="quads.obj: not a triangle surface .it holds quad cells"):
+        TriangleMesh.read(tmp_path / "quads.obj")
+    (tmp_path / "junk.stl").write_text("not a mesh\n")
+    with pytest.raises(ValueError, match="junk.stl: cannot read a triangle surface"):
+        TriangleMesh.read(tmp_path / "junk.stl")
+
+
+def pressed_slab(obj, depth=1.5, comm=MPI.COMM_WORLD):
+    settings = ContactSettings((obj,), (sphere_at(-1.0),), dhat=0.05, stiffness=10.0)
+    problem = FaceProblem(skin_slab(comm), contact=settings)
+    problem.solve(activations=ACTIVATIONS, objects=(sphere_at(depth),))
+    return problem
+
+
+@pytest.fixture(scope="module")
+def slab():
+    return pressed_slab(TriangleMesh(*ICOSPHERE, name="icosphere"))
+
+
+def test_gradient_and_hessian_against_differences_of_the_energy(slab):
+    contact, u = slab.contact, slab.u.vector
+    gaps = contact.gaps(slab.u.x.array)[0]
+    assert (gaps < contact.dhat).sum() >= 4
+    v, w = random_direction(slab, 1), random_direction(slab, 2)
+    v.scale(1e-3 / v.norm(PETSc.NormType.NORM_INFINITY))
+
+    def energy_at(h):
+        x = u.copy()
+        x.axpy(h, v)
+        return contact.energy(x)
+
+    def gradient_at(h):
+        x = u.copy()
+        x.axpy(h, v)
+        b = u.duplicate()
+        b.set(0.0)
+        contact.add_gradient(x, b)
+        return b
+
+    gradient = gradient_at(0.0)
+    for h in (0.1, 0.05):
+        fd = (energy_at(h) - energy_at(-h)) / (2 * h)
+        assert fd == pytest.approx(gradient.dot(v), rel=2e-5 * (h / 0.05) ** 2 + 1e-9)
+    A = fem_petsc.assemble_matrix(slab.solver.jacobian_form)
+    A.assemble()
+    A.zeroEntries()
+    contact.add_hessian(u, A, np.zeros(0, dtype=np.int32))
+    Hv = u.duplicate()
+    A.mult(v, Hv)
+    h = 0.05
+    fd = gradient_at(h)
+    fd.axpy(-1.0, gradient_at(-h))
+    fd.scale(1.0 / (2 * h))
+    difference = fd.copy()
+    difference.axpy(-1.0, Hv)
+    assert difference.norm() <= 1e-5 * Hv.norm()
+    assert fd.dot(w) == pytest.approx(Hv.dot(w), rel=1e-5)
+    assert A.isSymmetric(1e-10)
+
+
+def test_tessellated_sphere_against_the_analytic_one(slab):
+    """Same indentation: the force on the 5120-triangle sphere within 1 % of the analytic sphere's,
+    no node inside at any Newton iterate of a further press."""
+    analytic = pressed_slab(Sphere(RADIUS))
+    force = slab.contact.nodal_forces(slab.u.x.array).sum(axis=0)[2]
+    expected = analytic.contact.nodal_forces(analytic.u.x.array).sum(axis=0)[2]
+    assert force == pytest.approx(expected, rel=0.01)
+    gaps = []
+    slab.solver.snes.setMonitor(lambda snes, it, norm: gaps.append(slab.contact.min_gap(snes.getSolution().array_r)))
+    report = slab.solve(objects=(sphere_at(2.5),))
+    slab.solver.snes.cancelMonitor()
+    assert report.converged and len(gaps) > 3 and min(gaps) > 0.0
+    assert slab.residual_norm() < 1e-6
+
+
+def test_same_result_on_one_rank(slab):
+    slab.solve(objects=(sphere_at(1.5),))
+    serial = pressed_slab(TriangleMesh(*ICOSPHERE), comm=MPI.COMM_SELF)
+    here = slab.contact.nodal_forces(slab.u.x.array).sum(axis=0)
+    alone = serial.contact.nodal_forces(serial.u.x.array).sum(axis=0)
+    assert np.abs(here - alone).max() <= 1e-7 * np.abs(alone).max()
+
+
+def test_object_mesh_starting_inside_is_refused():
+    settings = ContactSettings((TriangleMesh(*ICOSPHERE, name="ball.stl"),), (sphere_at(0.5),), where="path.txt")
+    with pytest.raises(ValueError, match=r"path.txt: the triangle surface ball.stl \(5120 triangles\) .* starts inside the skin"):
+        FaceProblem(skin_slab(cells=(8, 4, 2)), contact=settings)
+
+
+def test_simulate_moves_a_mesh_along_a_path(model, shared_dir):
+    """run.py simulate --object mesh:FILE --path FILE on the small face: the icosphere in the
+    cheek, a frame per pose, the object's series; bad files stop it before any solve."""
+    import json
+    from face_dolfinx.cli.main import main
+    from conftest import on_rank_0
+    mesh_file, path, out = shared_dir / "ball.ply", shared_dir / "path.txt", shared_dir / "pressed"
+    points, triangles = Sphere(15.0).surface(3)
+    centres = cheek_path(model, [-1.0, 2.0, 0.0])
+    on_rank_0(lambda: (meshio.write(mesh_file, meshio.Mesh(points, [("triangle", triangles)])),
+                       path.write_text("\n".join(" ".join(f"{v:.6f}" for v in c) for c in centres) + "\n")))
+    model_path = str(model.path)
+    assert main(["simulate", "--model", model_path, "--object", f"mesh:{mesh_file}", "--path", str(path),
+                 "--out", str(out), "--no-render"]) == 0
+    rows = json.loads((out / "summary.json").read_text())["object"]
+    assert [row["pose"] for row in rows] == [0, 1, 2]
+    assert rows[1]["contact_nodes"] >= 3 and rows[1]["min_gap_mm"] > 0.0 and rows[2]["contact_nodes"] == 0
+    assert (out / "object.xdmf").exists()
+    on_rank_0(lambda: meshio.write(shared_dir / "open.ply", meshio.Mesh(points, [("triangle", triangles[1:])])))
+    with pytest.raises(SystemExit, match="open.ply: not a closed surface"):
+        main(["simulate", "--model", model_path, "--object", f"mesh:{shared_dir / 'open.ply'}", "--path", str(path),
+              "--out", str(shared_dir / "never"), "--no-render"])
+    with pytest.raises(SystemExit, match="missing.obj: cannot read"):
+        main(["simulate", "--model", model_path, "--object", f"mesh:{shared_dir / 'missing.obj'}", "--path", str(path),
+              "--out", str(shared_dir / "never"), "--no-render"])
+    inside, pressed_in = shared_dir / "inside.txt", cheek_path(model, [3.0])[0]   # collective
+    on_rank_0(lambda: inside.write_text(" ".join(f"{v:.6f}" for v in pressed_in) + "\n"))
+    with pytest.raises(SystemExit, match=r"inside.txt .its first pose.: the triangle surface .*ball.ply .* starts inside the skin"):
+        main(["simulate", "--model", model_path, "--object", f"mesh:{mesh_file}", "--path", str(inside),
+              "--out", str(shared_dir / "never"), "--no-render"])

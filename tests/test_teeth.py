@@ -1,0 +1,179 @@
+"""The teeth (face_dolfinx.model.anatomy.teeth, FaceModel.teeth, ContactSettings(teeth=True)): the
+built-in face's teeth are closed and behind the lining, written and read with the model, carried
+along to a subject; the lips pressed on them by the orbicularis oris stay outside at every Newton
+iterate and rest on them (and go through them without the contact); the same force on 1 and 2
+ranks; bad teeth are refused naming the model file.
+"""
+import shutil
+from dataclasses import replace
+
+from mpi4py import MPI
+import numpy as np
+import pytest
+
+from conftest import on_rank_0
+from face_dolfinx.model.bones import AffineMap
+from face_dolfinx.model.folder import ModelError, load_model
+from face_dolfinx.model.surface_file import write_triangle_surface
+from face_dolfinx.physics.contact import TEETH_STIFFNESS, ContactSettings
+from face_dolfinx.physics.problem import FaceProblem
+from face_dolfinx.physics.rigid_mesh import TriangleMesh
+
+DHAT = 0.05
+# kPa: about the contact pressure of the lips on the teeth (docs/contact.md).
+STIFFNESS = TEETH_STIFFNESS
+# The orbicularis oris at this level presses the lips on the teeth with about 30 N on the small
+# face; at 1 the solve takes some 350 Newton iterations (docs/contact.md).
+LEVEL = 0.1
+
+
+def orbicularis_oris(model, level=LEVEL):
+    return {name: level for name in model.muscle_names if name.startswith("orbicularis_oris")}
+
+
+def lining_gaps(arrays, teeth=None):
+    """Gap of every node of the oral lining to each of the teeth (bone -> array), at rest."""
+    nodes = np.unique(arrays.facets[arrays.facet_values == arrays.boundary_ids["oral"]])
+    return {bone: TriangleMesh(*surface).gaps(arrays.points[nodes], AffineMap())[0]
+            for bone, surface in (teeth or arrays.teeth).items()}
+
+
+def test_builtin_teeth_sit_behind_the_lining(template):
+    assert set(template.teeth) == {"cranium", "mandible"}
+    for bone, gaps in lining_gaps(template).items():
+        # 0.3 mm along the rays; less along the normal where the lining is oblique to them.
+        assert 0.2 < gaps.min() < 0.3, bone
+        assert (gaps < 0.5).sum() >= 10, bone  # the lips rest on them
+    upper, lower = (template.teeth[bone][0] for bone in ("cranium", "mandible"))
+    assert upper[:, 1].mean() > lower[:, 1].mean() + 10.0  # the upper teeth above the lower ones
+    bone_nodes = np.unique(template.facets[template.facet_values == template.boundary_ids["mandible"]])
+    moving = TriangleMesh(*template.teeth["cranium"]).gaps(template.points[bone_nodes], AffineMap())[0]
+    assert moving.min() > 5.0  # the mandible's nodes do not come near the upper teeth
+
+
+def test_teeth_are_written_and_read_with_the_model(template, shared_dir):
+    out = shared_dir / "copy"
+    on_rank_0(lambda: template.write(out))
+    model = load_model(out)
+    for bone, (points, triangles) in template.teeth.items():
+        read_points, read_triangles = model.teeth[bone]
+        assert len(read_triangles) == len(triangles)
+        volume = [np.einsum("ij,ij->i", p[t[:, 0]], np.cross(p[t[:, 1]], p[t[:, 2]])).sum()
+                  for p, t in ((points, triangles), (read_points, read_triangles))]
+        assert volume[1] == pytest.approx(volume[0], rel=1e-12) and volume[0] > 0
+        assert np.abs(np.sort(read_points, axis=0) - np.sort(points, axis=0)).max() < 1e-5
+
+
+def test_bad_teeth_are_refused(template, shared_dir):
+    folder = shared_dir / "bad"
+    points, triangles = template.teeth["mandible"]
+
+    def damaged(text=None, surface=None, teeth=template.teeth):
+        if MPI.COMM_WORLD.rank == 0:
+            shutil.rmtree(folder, ignore_errors=True)
+            replace(template, teeth=teeth).write(folder)
+            if surface is not None:
+                write_triangle_surface(folder / "teeth_mandible.ply", *surface)
+            if text is not None:
+                toml = folder / "model.toml"
+                toml.write_text(toml.read_text().replace('mandible = "teeth_mandible.ply"', text))
+        MPI.COMM_WORLD.barrier()
+
+    damaged(surface=(points, triangles[1:]))
+    with pytest.raises(ModelError, match=r"model.toml: \[teeth\] mandible = 'teeth_mandible.ply': .*not a closed surface"):
+        load_model(folder)
+    damaged(text='mandible = "gone.ply"')
+    with pytest.raises(ModelError, match=r"model.toml: \[teeth\] mandible = 'gone.ply': no such file"):
+        load_model(folder)
+    damaged(text='maxilla = "teeth_mandible.ply"')
+    with pytest.raises(ModelError, match=r"model.toml: \[teeth\]: unknown bone 'maxilla'"):
+        load_model(folder)
+    # Lower teeth moved 0.5 mm forward: into the lining of the lower lip.
+    damaged(surface=(points + [0.0, 0.0, 0.5], triangles))
+    model = load_model(folder)
+    with pytest.raises(ValueError, match=r"bad \(\[teeth\] of its model.toml\): the triangle surface teeth on the "
+                                         r"mandible .* starts inside the oral"):
+        FaceProblem(model, contact=ContactSettings(teeth=True))
+    # 0.23 mm forward: outside, but closer than dhat.
+    damaged(surface=(points + [0.0, 0.0, 0.23], triangles))
+    with pytest.raises(ValueError, match=r"teeth on the mandible .* comes within .* mm of .* nodes of the oral at "
+                                         r"rest; it must leave more than 0.05 mm"):
+        FaceProblem(load_model(folder), contact=ContactSettings(teeth=True))
+    damaged(teeth={})
+    with pytest.raises(ValueError, match=r"model .*bad has no teeth \(\[teeth\] in its model.toml"):
+        FaceProblem(load_model(folder), contact=ContactSettings(teeth=True))
+
+
+@pytest.fixture(scope="module")
+def pressed(model):
+    """The small face with the orbicularis oris on, jaw closed, teeth contact on; the smallest gap
+    to the teeth over all Newton iterates."""
+    problem = FaceProblem(model, contact=ContactSettings(teeth=True, dhat=DHAT, stiffness=STIFFNESS))
+    gaps = []
+    problem.solver.snes.setMonitor(lambda snes, it, norm: gaps.append(
+        problem.teeth_contact.min_gap(snes.getSolution().array_r)))
+    report = problem.solve(activations=orbicularis_oris(model))
+    problem.solver.snes.cancelMonitor()
+    return problem, report, gaps
+
+
+def test_lips_pressed_on_the_teeth(pressed):
+    problem, report, gaps = pressed
+    teeth = problem.teeth_contact
+    assert report.converged and len(gaps) > 3
+    assert min(gaps) > 0.0  # no node inside the teeth at any Newton iterate
+    assert teeth.contact_nodes(problem.u.x.array) > 0
+    forces = teeth.nodal_forces(problem.u.x.array)
+    assert np.linalg.norm(forces, axis=1).sum() > 1000.0  # mN pressing on the teeth
+    assert problem.residual_norm() < 1e-6
+
+
+def test_same_force_on_one_rank(model, builtin_model_path, pressed):
+    problem = pressed[0]
+    serial = FaceProblem(load_model(builtin_model_path, MPI.COMM_SELF),
+                         contact=ContactSettings(teeth=True, dhat=DHAT, stiffness=STIFFNESS))
+    serial.solve(activations=orbicularis_oris(model))
+    here = problem.teeth_contact.nodal_forces(problem.u.x.array)
+    alone = serial.teeth_contact.nodal_forces(serial.u.x.array)
+    assert np.abs(here - alone).max() <= 1e-6 * np.abs(alone).max()
+
+
+def test_without_teeth_the_lips_go_through(model, pressed):
+    """The same solve without contact leaves lining nodes inside the teeth: the contact matters."""
+    problem = FaceProblem(model)
+    problem.solve(activations=orbicularis_oris(model))
+    teeth = pressed[0].teeth_contact
+    assert teeth.gaps(problem.u.x.array).min() < 0.0
+
+
+def test_teeth_carried_to_a_subject(template):
+    """carry_model with the skin moved smoothly (a broader, shorter face): the teeth follow the
+    lining they rest on and stay clear of it."""
+    from face_dolfinx.subjects.adaptation import carry_model
+    skin = template.points[template.skin_nodes]
+    centre = skin.mean(axis=0)
+    bump = np.exp(-np.sum(((skin - centre) / 60.0) ** 2, axis=1))[:, None]
+    targets = centre + (skin - centre) * [1.06, 0.95, 1.0] + 2.0 * bump * [0.0, 0.0, 1.0]
+    subject, _ = carry_model(template, targets, name="subject")
+    before, after = lining_gaps(template), lining_gaps(subject)
+    for bone in ("cranium", "mandible"):
+        resting = before[bone] < 1.0  # the lining on the teeth
+        assert after[bone].min() > DHAT, bone
+        assert np.abs(after[bone] - before[bone])[resting].max() < 0.05, bone
+
+
+
+def test_simulate_with_contact(model, template, shared_dir):
+    """run.py simulate --contact: the teeth rows of summary.json; a model without teeth is refused
+    naming it, before any solve."""
+    import json
+    from face_dolfinx.cli.main import main
+    out = shared_dir / "smile"
+    assert main(["simulate", "smile", "--model", str(model.path), "--contact", "--out", str(out), "--no-render"]) == 0
+    row = json.loads((out / "summary.json").read_text())["expressions"][0]
+    assert row["expression"] == "smile" and row["teeth"]["min_gap_mm"] > 0.0
+    bare = shared_dir / "no_teeth"
+    on_rank_0(lambda: replace(template, teeth={}).write(bare))
+    with pytest.raises(SystemExit, match=r"model .*no_teeth has no teeth"):
+        main(["simulate", "smile", "--model", str(bare), "--contact", "--out", str(shared_dir / "never"), "--no-render"])
+    assert not (shared_dir / "never").exists()
