@@ -291,7 +291,7 @@ def load_model(path, comm=MPI.COMM_WORLD) -> FaceModel:
                               fraction[here], fiber[here], entry["geometry"]))
     teeth = on_rank_0(lambda: _read_teeth(folder, meta["teeth"]), comm)
     return FaceModel(folder, meta["name"], domain, tags, boundary_ids, muscles, meta["jaw"],
-                     meta["markers"], meta["landmarks"], meta["material"], meta["expressions"], teeth)
+                     meta["markers"], meta["landmarks"], meta["material"], meta["expressions"], teeth=teeth)
 
 
 def _read_teeth(folder: Path, files: dict[str, str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
