@@ -82,13 +82,13 @@ def random_direction(problem, seed):
     return vector
 
 
-def test_gradient_and_hessian_against_differences_of_the_energy(slab):
-    """Through the assembled vector and matrix: dE . v and (H v) . w against central differences of
-    the energy and of the assembled gradient, at the pressed state (active contact)."""
-    contact, u = slab.contact, slab.u.vector
-    assert contact.contact_nodes(slab.u.x.array) >= 4
-    v, w = random_direction(slab, 1), random_direction(slab, 2)
-    v.scale(1e-3 / v.norm(PETSc.NormType.NORM_INFINITY))  # mm: well inside the gaps (>= 0.02)
+def assert_barrier_derivatives(problem, contact):
+    """Through the assembled vector and matrix at ``problem``'s state: dE . v and (H v) . w of the
+    contact term against central differences of its energy and of its assembled gradient (v, w:
+    smooth random directions; v of 1e-3 mm, inside the gaps), and the Hessian symmetric."""
+    u = problem.u.vector
+    v, w = random_direction(problem, 1), random_direction(problem, 2)
+    v.scale(1e-3 / v.norm(PETSc.NormType.NORM_INFINITY))
 
     def energy_at(h):
         x = u.copy()
@@ -107,7 +107,7 @@ def test_gradient_and_hessian_against_differences_of_the_energy(slab):
     for h in (0.1, 0.05):
         fd = (energy_at(h) - energy_at(-h)) / (2 * h)
         assert fd == pytest.approx(gradient.dot(v), rel=2e-5 * (h / 0.05) ** 2 + 1e-9)
-    A = fem_petsc.assemble_matrix(slab.solver.jacobian_form)  # the finite-element sparsity ...
+    A = fem_petsc.assemble_matrix(problem.solver.jacobian_form)  # the finite-element sparsity ...
     A.assemble()
     A.zeroEntries()  # ... holding the contact Hessian alone
     contact.add_hessian(u, A, np.zeros(0, dtype=np.int32))
@@ -122,6 +122,12 @@ def test_gradient_and_hessian_against_differences_of_the_energy(slab):
     difference.axpy(-1.0, Hv)
     assert difference.norm() <= 1e-5 * Hv.norm()
     assert A.isSymmetric(1e-10)
+
+
+def test_gradient_and_hessian_against_differences_of_the_energy(slab):
+    """At the pressed state (active contact; the gaps >= 0.02 mm)."""
+    assert slab.contact.contact_nodes(slab.u.x.array) >= 4
+    assert_barrier_derivatives(slab, slab.contact)
 
 
 def test_no_node_enters_the_sphere_at_any_newton_iterate():
