@@ -59,7 +59,7 @@ done
 
 # Retargeted forward frames on a subject adapted from the 20K face, played as simulate --animation plays them.
 mpirun -n 2 $PYTHON benchmarks/retarget_speed.py --tets 20000 --frames 20 --work runs/retarget_speed \
-  --out $RESULTS/retarget/retarget_20k_np2_default_fast.jsonl
+  --out $RESULTS/retarget/retarget_20k_np2_idle.jsonl
 
 # Where methods fail, one file per study (each run records itself in the manifest).
 declare -A STABILITY=([forward]=forward_5k-20k [ramp]=ramp_1k-20k [remote]=remote_5k [head]=head_5k [damage]=damage_5k)
@@ -71,7 +71,7 @@ done
 $PYTHON benchmarks/stability.py --collect $RESULTS/stability/{forward_5k-20k,ramp_1k-20k,remote_5k,head_5k,damage_5k}.jsonl \
   --plot docs/img/stability > runs/stability_tables.md
 # Warm-started frames of an edited animation played back (docs/animation.md).
-mpirun -n 2 $PYTHON benchmarks/edit_speed.py --tets 20000 --out $RESULTS/edit/edit_20k_np2.jsonl
+mpirun -n 2 $PYTHON benchmarks/edit_speed.py --tets 20000 --out $RESULTS/edit/edit_20k_np2_idle.jsonl
 # The model ladder (writes its own tables and figures).
 benchmarks/run_ladder.sh
 # Dynamic against quasistatic re-simulation (docs/dynamics.md): 5K and 20K faces, substeps of 1/240, 1/60 and 1/960 s.
