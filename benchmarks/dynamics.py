@@ -1,4 +1,4 @@
-"""Dynamic against quasistatic re-simulation of the face (sifakis2005 section 9, issue 19 section 4).
+"""Dynamic against quasistatic re-simulation of the face (sifakis2005 section 9).
 
 For each motion (an expression switched on and held, a head shake, a jog) and each tissue (the
 model's own, or the nose and cheeks softened by a regional override), the face is integrated in
