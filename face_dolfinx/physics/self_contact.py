@@ -39,6 +39,7 @@ import numpy as np
 from dolfinx import fem
 
 from face_dolfinx.physics.contact import ContactSurface
+from face_dolfinx.physics.rigid_mesh import closest_points
 
 # No point of a Newton step's line-search segment may bring two lip primitives closer than
 # (1 - CCD_KEEP) of their smallest distance now (IPC's conservative rescaling).
@@ -302,4 +303,6 @@ def _contains(corners: np.ndarray, point: np.ndarray) -> np.ndarray:
 
 def _distance_to_triangles(point: np.ndarray, triangles: np.ndarray) -> float:
     """Distance of ``point`` to the nearest of the triangles (k, 3, 3)."""
-    return float(np.sqrt(min(ipctk.point_triangle_distance(point, *t) for t in triangles)))
+    points = np.broadcast_to(point, (len(triangles), 3))
+    closest, _ = closest_points(points, triangles[:, 0], triangles[:, 1], triangles[:, 2])
+    return float(np.linalg.norm(points - closest, axis=1).min())
