@@ -9,11 +9,13 @@ from petsc4py import PETSc
 import numpy as np
 import pytest
 import dolfinx.fem.petsc as fem_petsc
+import ufl
+from dolfinx import fem
 from dolfinx import mesh as dmesh
 
 import ipctk
 from face_dolfinx.model.bones import AffineMap
-from face_dolfinx.physics.contact import ContactSettings, HalfSpace, Sphere, barrier, barrier_derivatives
+from face_dolfinx.physics.contact import ContactSettings, ContactSurface, HalfSpace, Sphere, barrier, barrier_derivatives
 from face_dolfinx.physics.points import PointEvaluator
 from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity
@@ -287,3 +289,19 @@ def test_simulate_moves_a_sphere_along_a_path(model, builtin_model_path, shared_
     with pytest.raises(SystemExit, match="give sphere:RADIUS"):
         main(["simulate", "--model", str(builtin_model_path), "--object", "cube:3", "--path", str(path),
               "--out", str(shared_dir / "never"), "--no-render"])
+
+
+@pytest.mark.parametrize("tag", ["skin", "oral"])
+def test_contact_surface_holds_every_facet_node_on_any_ranks(model, tag):
+    """A facet's node may be owned by a rank that does not hold the facet: the gathered surface
+    still has every node, so its lumped areas add up to the facets' area (assembled by DOLFINx)."""
+    space = FaceProblem(model).V
+    facets = model.facet_tags.find(model.boundary_ids[tag])
+    surface = ContactSurface(space, facets)
+    ds = ufl.Measure("ds", domain=model.mesh, subdomain_data=model.facet_tags,
+                     subdomain_id=model.boundary_ids[tag], metadata={"quadrature_degree": 1})
+    area = model.mesh.comm.allreduce(fem.assemble_scalar(fem.form(fem.Constant(model.mesh, 1.0) * ds)), op=MPI.SUM)
+    vertices = dmesh.compute_incident_entities(model.mesh, facets, 2, 0)
+    global_vertices = model.mesh.topology.index_map(0).local_to_global(vertices)
+    assert surface.num_nodes == len(np.unique(np.concatenate(model.mesh.comm.allgather(global_vertices))))
+    assert surface.areas.sum() == pytest.approx(area, rel=1e-12)

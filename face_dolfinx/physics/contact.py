@@ -233,8 +233,12 @@ class ContactSurface:
         local_triangles = np.array(local_triangles, dtype=np.int32).reshape(-1, 3)
         global_triangles = index_map.local_to_global(local_triangles.reshape(-1)).reshape(-1, 3)
         coordinates = space.tabulate_dof_coordinates()[:, :3]
-        owned = np.unique(local_triangles[local_triangles < index_map.size_local])
-        owned_global = index_map.local_to_global(owned)
+        # A node of a facet may be owned by a rank that does not hold the facet (a ghost on the
+        # facet's rank): every rank contributes the nodes it owns among all ranks' facets.
+        surface_global = np.unique(np.concatenate(self.comm.allgather(np.unique(global_triangles))))
+        first, last = index_map.local_range
+        owned_global = surface_global[(surface_global >= first) & (surface_global < last)]
+        owned = (owned_global - first).astype(np.int32)
 
         # Every rank: all triangles and all owned nodes with their rest coordinates.
         all_triangles = np.concatenate(self.comm.allgather(global_triangles))
