@@ -11,14 +11,15 @@ included) and where that node is; the deepest point of any skin triangle inside 
 the equilibrium and over all iterates (the barrier keeps the *nodes* out, a flat triangle
 between them can still dip in); the contact nodes and the force on the sphere. At the deepest
 pose: the contact pressure per skin node (kPa), plotted as a map over the contact patch and as
-a profile against the distance from the sphere's axis (``--plot``), and the count of isolated
-spikes (a pressed node with more than twice the pressure of every neighbour).
+a profile against the distance from the sphere's axis (``--plot``), the pressures' scatter about
+the best fitting Hertz profile, and the count of isolated spikes (a pressed node with more than
+twice the pressure of every neighbour); ``--render``: a picture of the face with the sphere.
 
 Rows are printed and written (``--out``, JSON) after every pose, so a long run keeps what it
 measured; ``--max-poses`` stops after that many poses (404K tets on 2 ranks: a pose is minutes).
 
     python benchmarks/cheek_sphere.py --tets 5000 --out benchmarks/results/contact/cheek_sphere_5k.json \\
-        --plot benchmarks/results/contact/cheek_sphere_5k_pressure.png
+        --plot benchmarks/results/contact/cheek_sphere_5k_pressure.png --render cheek_sphere_5k.png
     mpirun -n 2 python benchmarks/cheek_sphere.py --tets 400000 --max-poses 3 --out ...
 """
 import argparse
@@ -38,6 +39,7 @@ from face_dolfinx.model.bones import AffineMap, jaw_pose  # noqa: E402
 from face_dolfinx.model.folder import load_model  # noqa: E402
 from face_dolfinx.physics.contact import ContactSettings, Sphere  # noqa: E402
 from face_dolfinx.physics.problem import FaceProblem  # noqa: E402
+from face_dolfinx.results.render import render_skin  # noqa: E402
 from face_dolfinx.results.xdmf import displacement_at  # noqa: E402
 
 # The sphere waits this far (mm) off the rest skin while the expression is solved.
@@ -122,6 +124,8 @@ def main():
     parser.add_argument("--max-poses", type=int, default=None, help="stop after this many poses")
     parser.add_argument("--out", required=True)
     parser.add_argument("--plot")
+    parser.add_argument("--render", help="PNG of the face with the sphere at the deepest pose")
+    parser.add_argument("--view", default="side", help="the render's view (front, three_quarter, side)")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     depths = [-1.0] + [float(d) for d in args.depths.split(",")]
@@ -223,6 +227,17 @@ def main():
                    pressure_kPa_by_distance_from_axis_mm=[[round(float(r), 3), round(float(p), 3)] for r, p in
                                                           sorted(zip(off_axis[pressed], pressure[pressed]))],
                    total_seconds=round(time.perf_counter() - began, 2))
+    if args.render:
+        skin_points, skin_triangles = model.skin_surface()
+        moved = skin_points + displacement_at(problem.u, skin_points)
+        if comm.rank == 0:
+            sphere_points, sphere_triangles = Sphere(radius).surface(refinements=4)
+            deepest = summary["poses"][-1]
+            render_skin(moved, skin_triangles, args.render, view=args.view,
+                        objects=[(sphere_points + centre, sphere_triangles)],
+                        title=f"{args.expression}, sphere R {radius:g} mm {deepest['depth_mm']:g} mm into the cheek, "
+                              f"{summary['tets']} tets")
+            record(args.render, tets=args.tets, ranks=comm.size)
     if comm.rank == 0:
         print(json.dumps({k: v for k, v in summary.items() if k not in ("poses", "pressure_kPa_by_distance_from_axis_mm")}),
               flush=True)
