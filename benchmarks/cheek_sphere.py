@@ -119,6 +119,7 @@ def main():
                         help="comma-separated depths (mm) of the sphere into the skin, one pose each, after a "
                              "first pose 1 mm outside")
     parser.add_argument("--site", default="nasolabial_left_3", help="the marker site the sphere aims at")
+    parser.add_argument("--degree", type=int, default=1, help="the displacement's polynomial degree (1 or 2)")
     parser.add_argument("--dhat", type=float, default=0.05)
     parser.add_argument("--stiffness", type=float, default=10.0)
     parser.add_argument("--max-poses", type=int, default=None, help="stop after this many poses")
@@ -141,7 +142,7 @@ def main():
     rest_site, rest_normal = cheek_frame(model, args.site)
     waiting = AffineMap(np.eye(3), rest_site + (radius + WAITING_CLEARANCE) * rest_normal)
     began = time.perf_counter()
-    problem = FaceProblem(model, contact=ContactSettings((Sphere(radius),), (waiting,), dhat=args.dhat,
+    problem = FaceProblem(model, degree=args.degree, contact=ContactSettings((Sphere(radius),), (waiting,), dhat=args.dhat,
                                                          stiffness=args.stiffness))
     contact = problem.contact
     failures = FailureCount()
@@ -152,15 +153,16 @@ def main():
     opening = np.radians(spec.pop("jaw_opening_deg", 0.0))
     report = problem.solve(activations=spec, jaw=jaw_pose(model.jaw, opening) if opening else AffineMap())
     site, normal = cheek_frame(model, args.site, problem.u)
-    summary = dict(tets=model.mesh.topology.index_map(3).size_global, ranks=comm.size, expression=args.expression,
+    rest = contact.surface.rest[contact.surface.triangles]  # flat triangles (four per P2 facet)
+    median_edge = float(np.median(np.linalg.norm(rest - np.roll(rest, 1, axis=1), axis=2)))
+    summary = dict(tets=model.mesh.topology.index_map(3).size_global, ranks=comm.size, degree=args.degree,
+                   expression=args.expression,
                    radius_mm=radius, dhat_mm=args.dhat, stiffness_kPa=args.stiffness, site=args.site,
                    site_mm=site.round(4).tolist(), normal=normal.round(6).tolist(),
                    skin_nodes=contact.surface.num_nodes, skin_triangles=len(contact.surface.triangles),
-                   median_skin_edge_mm=None, expression_newton_iterations=report.newton_iterations,
+                   median_skin_edge_mm=round(median_edge, 3), expression_newton_iterations=report.newton_iterations,
                    expression_load_steps=report.load_steps, expression_seconds=round(report.seconds, 2),
                    set_up_and_expression_seconds=round(time.perf_counter() - began, 2), poses=[])
-    rest = contact.surface.rest[contact.surface.triangles]
-    summary["median_skin_edge_mm"] = round(float(np.median(np.linalg.norm(rest - np.roll(rest, 1, axis=1), axis=2))), 3)
     if comm.rank == 0:
         print(json.dumps({k: v for k, v in summary.items() if k != "poses"}), flush=True)
 
@@ -299,7 +301,7 @@ def plot(path, summary, x, pressure, centre, normal, off_axis):
     right.set_title("pressure profile")
     deepest = summary["poses"][-1]
     figure.suptitle(f"sphere R {summary['radius_mm']:g} mm, {deepest['depth_mm']:g} mm into the cheek, "
-                    f"{summary['expression']}, {summary['tets']} tets: {summary['pressed_nodes']} pressed nodes, "
+                    f"{summary['expression']}, {summary['tets']} tets P{summary['degree']}: {summary['pressed_nodes']} pressed nodes, "
                     f"force {deepest['force_along_normal_mN']:.0f} mN", fontsize=10)
     figure.tight_layout()
     figure.savefig(path, dpi=120)
