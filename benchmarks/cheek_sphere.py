@@ -142,8 +142,8 @@ def main():
     rest_site, rest_normal = cheek_frame(model, args.site)
     waiting = AffineMap(np.eye(3), rest_site + (radius + WAITING_CLEARANCE) * rest_normal)
     began = time.perf_counter()
-    problem = FaceProblem(model, degree=args.degree, contact=ContactSettings((Sphere(radius),), (waiting,), dhat=args.dhat,
-                                                         stiffness=args.stiffness))
+    settings = ContactSettings((Sphere(radius),), (waiting,), dhat=args.dhat, stiffness=args.stiffness)
+    problem = FaceProblem(model, degree=args.degree, contact=settings)
     contact = problem.contact
     failures = FailureCount()
     solver_log = logging.getLogger("face_dolfinx.equilibrium.solver")
@@ -156,8 +156,7 @@ def main():
     rest = contact.surface.rest[contact.surface.triangles]  # flat triangles (four per P2 facet)
     median_edge = float(np.median(np.linalg.norm(rest - np.roll(rest, 1, axis=1), axis=2)))
     summary = dict(tets=model.mesh.topology.index_map(3).size_global, ranks=comm.size, degree=args.degree,
-                   expression=args.expression,
-                   radius_mm=radius, dhat_mm=args.dhat, stiffness_kPa=args.stiffness, site=args.site,
+                   expression=args.expression, radius_mm=radius, dhat_mm=args.dhat, stiffness_kPa=args.stiffness, site=args.site,
                    site_mm=site.round(4).tolist(), normal=normal.round(6).tolist(),
                    skin_nodes=contact.surface.num_nodes, skin_triangles=len(contact.surface.triangles),
                    median_skin_edge_mm=round(median_edge, 3), expression_newton_iterations=report.newton_iterations,
