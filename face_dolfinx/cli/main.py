@@ -210,7 +210,8 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
                 writer.write(float(step))
                 if render:
                     _render_expression(problem, staging / f"{step:02d}_{name}.png", name)
-            object_rows = (_move_object(problem, contact[1], writer, staging / "object.xdmf", len(expressions))
+            object_rows = (_move_object(problem, contact[1], writer, staging / "object.xdmf", len(expressions),
+                                        render=render)
                            if contact is not None and contact[1] else None)
         if comm.rank == 0:
             (staging / "summary.json").write_text(json.dumps(
@@ -514,10 +515,12 @@ def _contact_row(contact, displacement) -> dict:
                 pressed_mN=round(float(np.linalg.norm(forces, axis=1).sum()), 4))
 
 
-def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -> list[dict]:
+def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int, render: bool = False) -> list[dict]:
     """The contact object along ``poses`` (the first is where it stands), one solve and one face
     frame per pose; the object's surface as its own XDMF series (a fan of tetrahedra from its
-    centre, moved by a displacement field: ParaView's Warp By Vector shows it in place)."""
+    centre, moved by a displacement field: ParaView's Warp By Vector shows it in place). With
+    ``render``, a PNG of the face with the object per frame (``NN_object.png`` beside ``path``;
+    the first pose's frame is the last expression's render, if any)."""
     from face_dolfinx.results.xdmf import XdmfSeries
     comm = MPI.COMM_WORLD
     contact = problem.contact
@@ -543,6 +546,9 @@ def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int) -
                      row["newton_iterations"], float(np.linalg.norm(force)), row["min_gap_mm"], row["contact_nodes"])
             if index:
                 writer.write(float(frame))
+            if render and (index or not first_frame):
+                _render_expression(problem, path.parent / f"{frame:02d}_object.png",
+                                   f"object pose {index}: {np.linalg.norm(force):.0f} mN on it")
             if series is not None:
                 series.write(float(frame), {"displacement": pose.apply(points) - points}, {})
     except BaseException:
@@ -815,12 +821,24 @@ def demo(args) -> int:
 
 
 def _render_expression(problem, path: pathlib.Path, title: str) -> None:
+    """The deformed skin, and the contact objects at their poses, as a PNG (rank 0 writes)."""
     from face_dolfinx.results.xdmf import displacement_at
     from face_dolfinx.results.render import render_skin
     points, triangles = problem.model.skin_surface()
     moved = points + displacement_at(problem.u, points)
     if MPI.COMM_WORLD.rank == 0:
-        render_skin(moved, triangles, path, title=title)
+        render_skin(moved, triangles, path, title=title, objects=_object_surfaces(problem))
+
+
+def _object_surfaces(problem) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Points and triangles of each contact object's surface at its current pose (none without)."""
+    if problem.contact is None:
+        return []
+    surfaces = []
+    for obj, pose in zip(problem.contact.objects, problem.controls.objects):
+        object_points, object_triangles = obj.surface()
+        surfaces.append((pose.apply(object_points), object_triangles))
+    return surfaces
 
 
 def main(argv=None) -> int:

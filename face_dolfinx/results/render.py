@@ -12,6 +12,8 @@ them outwards). The walls of openings are shaded as the cavities they are, so th
 the eye fissures read dark: a wall is the smooth patch (bounded by creases) that touches a hole
 of the surface, i.e. a boundary loop other than the longest one (the outer rim).
 Markers hidden behind the surface (e.g. the far cheek in a three-quarter view) are not drawn.
+Rigid objects touching the face (a sphere pressed into the cheek, a mesh from a file) are drawn
+as surfaces of their own colour, sorted back to front together with the skin's triangles.
 """
 import math
 from pathlib import Path
@@ -29,6 +31,7 @@ from scipy.sparse.csgraph import connected_components  # noqa: E402
 # ahead (+z) towards the subject's left (+x), elevation raises it.
 VIEWS = {"front": (0.0, 0.0), "three_quarter": (35.0, 10.0), "side": (90.0, 0.0)}
 SKIN_COLOUR = np.array([0.93, 0.76, 0.65])
+OBJECT_COLOUR = np.array([0.55, 0.68, 0.85])  # rigid objects: a cool grey-blue, apart from any skin tone
 LIGHT = np.array([-0.35, 0.6, 1.0])  # in camera coordinates: from the upper left, behind the viewer
 AMBIENT = 0.2
 FACING_POWER = 0.4   # brightness *= |normal . view| ** FACING_POWER
@@ -50,7 +53,7 @@ def camera_rotation(view: str) -> np.ndarray:
 
 
 def render_skin(points, triangles, path, scalars=None, markers=None, other_markers=None,
-                title=None, view="front", *, cmap="viridis", size=(5.0, 6.0), dpi=150) -> Path:
+                title=None, view="front", *, cmap="viridis", size=(5.0, 6.0), dpi=150, objects=()) -> Path:
     """Write a shaded picture of a triangulated surface to ``path`` (PNG) and return the path.
 
     points (n, 3), triangles (m, 3): the surface (e.g. ``FaceModel.skin_surface()``).
@@ -58,9 +61,12 @@ def render_skin(points, triangles, path, scalars=None, markers=None, other_marke
     markers / other_markers: optional (k, 3) points (or {name: point} dicts) drawn red / green,
     e.g. captured and simulated marker positions; rows with NaN (capture gaps) are skipped.
     view: "front", "three_quarter" or "side".
+    objects: surfaces (points (k, 3), triangles (l, 3)) of rigid objects at their poses, in the
+    skin's coordinates, drawn in OBJECT_COLOUR (e.g. a contact sphere's ``surface()`` moved by
+    its pose).
     """
     figure = draw_skin(points, triangles, scalars, markers, other_markers, title, view, cmap=cmap,
-                       size=size, dpi=dpi)
+                       size=size, dpi=dpi, objects=objects)
     path = Path(path)
     figure.savefig(path, facecolor="white")
     plt.close(figure)
@@ -68,10 +74,10 @@ def render_skin(points, triangles, path, scalars=None, markers=None, other_marke
 
 
 def draw_skin(points, triangles, scalars=None, markers=None, other_markers=None, title=None,
-              view="front", *, cmap="viridis", size=(5.0, 6.0), dpi=150, box=None):
+              view="front", *, cmap="viridis", size=(5.0, 6.0), dpi=150, box=None, objects=()):
     """The figure ``render_skin`` saves (the caller closes it). ``box`` ((x0, x1), (y0, y1)) in
     the view's camera coordinates fixes what is shown, e.g. the same for every frame of a video;
-    by default the drawn surface fills the picture."""
+    by default the drawn skin fills the picture (objects beyond it are cut off)."""
     points = np.asarray(points, dtype=float)
     triangles = np.asarray(triangles, dtype=np.int64)
     rotation = camera_rotation(view)
@@ -96,6 +102,11 @@ def draw_skin(points, triangles, scalars=None, markers=None, other_markers=None,
         low, high = np.nanmin(per_triangle), np.nanmax(per_triangle)
         base = plt.get_cmap(cmap)((per_triangle - low) / (high - low if high > low else 1.0))[:, :3]
     colours = np.clip(base * brightness[:, None], 0.0, 1.0)
+    skin_corners = corners
+    for object_points, object_triangles in objects:
+        object_corners, object_colours = _shaded_object(object_points, object_triangles, rotation, light)
+        corners = np.concatenate([corners, object_corners])
+        colours = np.concatenate([colours, object_colours])
 
     order = np.argsort(corners[:, :, 2].mean(axis=1))             # far first
     figure, axes = plt.subplots(figsize=size, dpi=dpi)
@@ -110,11 +121,11 @@ def draw_skin(points, triangles, scalars=None, markers=None, other_markers=None,
         xyz = np.asarray(list(marker_set.values()) if isinstance(marker_set, dict) else marker_set,
                          dtype=float).reshape(-1, 3) @ rotation.T
         xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
-        xyz = xyz[_visible(xyz, corners)]
+        xyz = xyz[_visible(xyz, skin_corners)]
         axes.scatter(xyz[:, 0], xyz[:, 1], s=area, c=colour, edgecolors="black", linewidths=0.3,
                      zorder=3)
     if box is None:
-        drawn = corners[:, :, :2].reshape(-1, 2)       # frame what is drawn, not unused points
+        drawn = skin_corners[:, :, :2].reshape(-1, 2)  # frame the drawn skin, not unused points
         box = view_box(drawn)
     axes.set_xlim(*box[0])
     axes.set_ylim(*box[1])
@@ -140,6 +151,20 @@ def view_box(camera_xy: np.ndarray, margin: float = 0.04) -> tuple[tuple[float, 
     low, high = camera_xy.min(axis=0), camera_xy.max(axis=0)
     pad = margin * (high - low).max()
     return (low[0] - pad, high[0] + pad), (low[1] - pad, high[1] + pad)
+
+
+def _shaded_object(points, triangles, rotation: np.ndarray, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-space corners (l, 3, 3) and colours (l, 3) of a rigid object's triangles, lit like
+    the skin."""
+    camera = np.asarray(points, dtype=float) @ rotation.T
+    triangles = np.asarray(triangles, dtype=np.int64)
+    corners = camera[triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    keep = np.linalg.norm(normals, axis=1) > 0
+    normals = _smoothed_normals(triangles[keep], normals[keep], len(camera))
+    brightness = ((AMBIENT + (1.0 - AMBIENT) * np.abs(normals @ light))
+                  * np.abs(normals[:, 2]) ** FACING_POWER)
+    return corners[keep], np.clip(OBJECT_COLOUR * brightness[:, None], 0.0, 1.0)
 
 
 def _smoothed_normals(triangles: np.ndarray, area_normals: np.ndarray, num_points: int):
