@@ -160,10 +160,9 @@ class SkinSurface:
         point, barycentric, _ = closest_points(p, a, b, c)
         degenerate = self.degenerate[triangle]
         if np.any(degenerate):
-            barycentric[degenerate] = _closest_on_edges(p[degenerate], a[degenerate], b[degenerate],
-                                                        c[degenerate])
-            point[degenerate] = (barycentric[degenerate, :1] * a[degenerate] + barycentric[degenerate, 1:2] * b[degenerate]
-                                 + barycentric[degenerate, 2:] * c[degenerate])
+            corners = (a[degenerate], b[degenerate], c[degenerate])
+            barycentric[degenerate] = _closest_on_edges(p[degenerate], *corners)
+            point[degenerate] = sum(barycentric[degenerate, k:k + 1] * corners[k] for k in range(3))
         return barycentric, point, np.linalg.norm(p - point, axis=1)
 
 
