@@ -28,6 +28,8 @@ $PYTHON $FORWARD --collect runs/forward_table.md $forward
 
 # The lips pressed on the teeth by the orbicularis oris at 0.1, with and without the teeth contact.
 record $RESULTS/contact/teeth_5k-20k_np1.jsonl $PYTHON benchmarks/contact_teeth.py --tets 5000 20000
+# The teeth's gradient, Hessian and step per call on that solve's iterates: sampled search against the centroid search.
+record $RESULTS/contact/teeth_terms_5k-20k_np1.jsonl $PYTHON benchmarks/contact_teeth_terms.py --tets 5000 20000
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 import ipctk
+from face_dolfinx.alignment.surface import closest_points
 from face_dolfinx.model.bones import AffineMap, rotation
 from face_dolfinx.physics.contact import ContactSettings, Sphere
 from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.model.surface_file import read_triangle_surface
-from face_dolfinx.physics.rigid_mesh import TriangleMesh, closest_points
+from face_dolfinx.physics.rigid_mesh import TriangleMesh
 from test_contact import ACTIVATIONS, RADIUS, assert_barrier_derivatives, cheek_path, skin_slab, sphere_at
 
 ICOSPHERE = Sphere(RADIUS).surface(4)  # 5120 triangles, edges about 0.6 mm
@@ -53,7 +54,7 @@ def test_distances_and_hessians_are_the_ipc_toolkits():
         local_n = grad / (2 * d)
         expected = R @ ((full / 2 - np.outer(local_n, local_n)) / d) @ R.T
         assert np.abs(h - expected).max() <= 1e-9 * max(1.0, np.abs(expected).max())
-        seen.add(int(closest_points(x[None], *mesh.corners[k][:, None, :])[1][0]))
+        seen.add(int(closest_points(x[None], *mesh.corners[k][:, None, :])[2][0]))
     assert seen == set(range(7))  # every region: the face, three edges, three vertices
 
 

@@ -38,6 +38,8 @@ WORK_BUDGET = 100_000
 # A triangle whose area is below this fraction of its longest edge squared is treated as its three
 # edges: its region tests would depend on rounding, and it has no normal.
 DEGENERATE_AREA_RATIO = 1e-12
+# Closest-point regions of a point against a triangle (a, b, c) (``closest_points``).
+FACE, EDGE_AB, EDGE_BC, EDGE_CA, VERTEX_A, VERTEX_B, VERTEX_C = range(7)
 
 
 class SkinSurface:
@@ -86,7 +88,7 @@ class SkinSurface:
         self.vertex_normals = np.divide(summed, length[:, None], out=np.zeros_like(summed),
                                         where=length[:, None] > 0)
 
-        proxies, self._proxy_triangle, self._proxy_radius = _triangle_proxies(self._a, self._b, self._c)
+        proxies, self._proxy_triangle, self._proxy_radius = covering_points(self._a, self._b, self._c)
         self._tree = cKDTree(proxies)
 
     def closest(self, query):
@@ -155,12 +157,12 @@ class SkinSurface:
     def _closest_on_triangles(self, p, triangle):
         """Closest points of p (P, 3) on triangles ``triangle`` (P,): barycentric, point, distance."""
         a, b, c = self._a[triangle], self._b[triangle], self._c[triangle]
-        barycentric = _ericson_barycentric(p, a, b, c)
+        point, barycentric, _ = closest_points(p, a, b, c)
         degenerate = self.degenerate[triangle]
         if np.any(degenerate):
-            barycentric[degenerate] = _closest_on_edges(p[degenerate], a[degenerate], b[degenerate],
-                                                        c[degenerate])
-        point = barycentric[:, :1] * a + barycentric[:, 1:2] * b + barycentric[:, 2:] * c
+            corners = (a[degenerate], b[degenerate], c[degenerate])
+            barycentric[degenerate] = _closest_on_edges(p[degenerate], *corners)
+            point[degenerate] = sum(barycentric[degenerate, k:k + 1] * corners[k] for k in range(3))
         return barycentric, point, np.linalg.norm(p - point, axis=1)
 
 
@@ -204,8 +206,9 @@ class MarkerEmbedding:
         return sp.csr_matrix((np.repeat(weight, 3), (rows, cols)), shape=(3 * n, 3 * n_vertices))
 
 
-def _triangle_proxies(a, b, c):
-    """Proxy points covering the triangles, their triangle ids, and R bounding every proxy ball.
+def covering_points(a, b, c):
+    """Proxy points covering the triangles abc (all (M, 3)), their triangle ids, and R: every point
+    of a triangle lies within R of one of its proxies.
 
     A triangle is covered by the ball about its centroid through its farthest vertex. A triangle
     whose ball is over twice the median is split into s x s congruent sub-triangles (each a copy
@@ -240,12 +243,17 @@ def _subtriangle_centroids(s):
     return np.column_stack([1.0 - ij.sum(axis=1), ij])
 
 
-def _ericson_barycentric(p, a, b, c):
-    """Barycentric coordinates of the closest points of p on triangles abc, all (P, 3).
+def closest_points(p, a, b, c):
+    """Closest points of p on triangles abc, all (P, 3), by Ericson's Voronoi-region tests
+    (Real-Time Collision Detection, 5.1.5): the closest points (P, 3), their barycentric
+    coordinates (P, 3) on (a, b, c) and their regions (P,): FACE, EDGE_AB, EDGE_BC, EDGE_CA,
+    VERTEX_A, VERTEX_B or VERTEX_C.
 
-    Ericson's Voronoi-region tests: vertex regions, then edge regions, else the face. For a
-    non-degenerate triangle no division is by zero: an edge region's denominator is that edge's
-    squared length, and the face's is positive when all three of va, vb, vc are.
+    The tests run in Ericson's order (vertex a, vertex b, edge ab, vertex c, edge ca, edge bc, else
+    the face); the first that holds decides. A vertex region's coordinates are exactly one and
+    zeros, an edge region's opposite coordinate exactly zero. For a non-degenerate triangle no
+    division is by zero: an edge region's denominator is that edge's squared length, and the
+    face's is positive when all three of va, vb, vc are.
     """
     ab, ac = b - a, c - a
     ap, bp, cp = p - a, p - b, p - c
@@ -261,7 +269,7 @@ def _ericson_barycentric(p, a, b, c):
         (d3 >= 0) & (d4 <= d3),                              # vertex b
         (vc <= 0) & (d1 >= 0) & (d3 <= 0),                   # edge ab
         (d6 >= 0) & (d5 <= d6),                              # vertex c
-        (vb <= 0) & (d2 >= 0) & (d6 <= 0),                   # edge ac
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),                   # edge ca
         (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),         # edge bc
     ]
     # Along-edge parameters, evaluated everywhere but used only inside their regions.
@@ -274,7 +282,10 @@ def _ericson_barycentric(p, a, b, c):
     zero, one = np.zeros_like(d1), np.ones_like(d1)
     v = np.select(regions, [zero, one, t_ab, zero, zero, 1 - t_bc], default=v_face)
     w = np.select(regions, [zero, zero, zero, one, t_ac, t_bc], default=w_face)
-    return np.column_stack([1 - v - w, v, w])
+    region = np.select(regions, [VERTEX_A, VERTEX_B, EDGE_AB, VERTEX_C, EDGE_CA, EDGE_BC], default=FACE)
+    barycentric = np.column_stack([1 - v - w, v, w])
+    point = barycentric[:, :1] * a + barycentric[:, 1:2] * b + barycentric[:, 2:] * c
+    return point, barycentric, region
 
 
 def _closest_on_edges(p, a, b, c):

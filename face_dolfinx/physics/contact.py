@@ -80,9 +80,10 @@ class Sphere:
         if not self.radius > 0.0:
             raise ValueError(f"sphere radius {self.radius:g} mm: give a positive radius")
 
-    def gaps(self, points: np.ndarray, pose: AffineMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def gaps(self, points: np.ndarray, pose: AffineMap, within=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signed gap of each point to the surface, the outward unit normal there, and 1 / the
-        distance to the centre (the gap's Hessian is (I - n n^T) times that)."""
+        distance to the centre (the gap's Hessian is (I - n n^T) times that). Exact for every
+        point: ``within`` (the cut-off of ``TriangleMesh.gaps``) is ignored."""
         offset = points - pose.translation
         distance = np.linalg.norm(offset, axis=1)
         inverse = 1.0 / np.maximum(distance, 1e-300)
@@ -138,7 +139,8 @@ class HalfSpace:
         n = pose.matrix @ np.asarray(self.normal, dtype=float)
         return n / np.linalg.norm(n)
 
-    def gaps(self, points: np.ndarray, pose: AffineMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def gaps(self, points: np.ndarray, pose: AffineMap, within=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Signed gap, normal and zero curvature of each point; exact, ``within`` is ignored."""
         n = self.world_normal(pose)
         gap = (points - pose.translation) @ n
         return gap, np.broadcast_to(n, points.shape), np.zeros(len(points))
@@ -349,7 +351,8 @@ class ContactPotential:
         d2g/dx2 = c (I - n n^T), or the 3 x 3 matrices d2g/dx2)."""
         x = self.positions(displacement)
         for obj, pose in zip(self.objects, self.poses):
-            gap, normal, curvature = obj.gaps(x, pose)
+            # Nodes surely beyond dhat get a lower bound of their gap (>= dhat): inactive either way.
+            gap, normal, curvature = obj.gaps(x, pose, within=self.dhat)
             active = np.flatnonzero((gap < self.dhat) & ~self.ignored)
             yield active, gap[active], normal[active], curvature[active]
 
@@ -407,9 +410,13 @@ class ContactPotential:
         kept = ~self.ignored
         points = self.positions(x.array_r)[kept]
         moves = -largest * self.surface.gather(step.array_r)[kept]
+        # A node farther than its move / CCD_KEEP cannot lose CCD_KEEP of its gap: a lower bound of
+        # its gap will do. Its clearance is then smaller than (1 - CCD_KEEP) gap but still positive, a
+        # collision-free bound, and its first contact lies beyond t = 1 with either clearance.
+        reach = np.linalg.norm(moves, axis=1) / CCD_KEEP
         fraction = 1.0
         for obj, pose in zip(self.objects, self.poses):
-            gap = obj.gaps(points, pose)[0]
+            gap = obj.gaps(points, pose, within=reach)[0]
             t = obj.first_contact(points, moves, pose, (1.0 - CCD_KEEP) * gap)
             fraction = min(fraction, float(t.min(initial=np.inf)))
         return fraction
@@ -427,7 +434,7 @@ class ContactPotential:
         target = PUSH_GAP * self.dhat
         for obj, old, new in zip(self.objects, self.poses, poses):
             reach = target + np.linalg.norm(new.compose(old.inverse()).apply(x) - x, axis=1).max(initial=0.0)
-            gap, normal, _ = obj.gaps(x, new)
+            gap, normal, _ = obj.gaps(x, new, within=reach)
             gap[self.ignored] = np.inf
             close = gap < target
             x[close] += (target - gap[close])[:, None] * normal[close]

@@ -12,9 +12,20 @@ a face region, (I - n n^T - e e^T) / d next to an edge of direction e and (I - n
 a vertex: the Hessian of ``ipctk.point_triangle_distance`` of the same pair with the triangle
 held fixed (the tests compare them).
 
-Candidate triangles come from KD-trees of the vertices and of the triangles' centroids: the
-nearest vertex or centroid bounds the distance from above, and only triangles whose bounding
-sphere comes that close are tested, a few dozen per point near the surface.
+Candidate triangles come from a KD-tree of sample points that cover the surface: every point of
+a triangle lies within the covering radius h of one of its samples (``covering_points``: a
+triangle much larger than is typical is split into congruent sub-triangles, one sample each, so h
+stays near the typical triangle size however long the teeth's side-wall triangles are). The
+nearest sample, at D, bounds a point's distance d from both sides, D - h <= d <= D, and a triangle
+at a distance r has a sample within r + h: the triangles of the samples within D + h hold the
+nearest one, a few dozen per point near the surface.
+
+``gaps(points, pose, within=...)`` computes the exact gap, normal and Hessian only of the points
+whose lower bound D - h is below ``within``; the others get that lower bound (at least
+``within``) and a zero normal and Hessian, so that a call costs in proportion to the points within
+reach of the surface. The bound is one of the distance: it bounds the gap of a point outside the
+surface, the only points the contact terms evaluate (their states are kept outside every object
+by the collision-free steps; ``ContactPotential.gaps`` and ``check_clear`` ask for exact gaps).
 
 ``first_contact`` bounds the time at which a point moving along a straight step first comes
 within a clearance of the surface, from below: per candidate triangle the larger of the time to
@@ -27,47 +38,12 @@ length alone would hold a node sliding at a gap of 0.01 mm to 1 % of a 1 mm step
 import numpy as np
 from scipy.spatial import cKDTree
 
+from face_dolfinx.alignment.surface import (EDGE_AB, EDGE_BC, EDGE_CA, FACE, VERTEX_A, VERTEX_B, VERTEX_C,
+                                            closest_points, covering_points)
 from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.model.surface_file import check_closed_surface, read_triangle_surface
 
-# Closest-point regions of a point against a triangle (a, b, c).
-FACE, EDGE_AB, EDGE_BC, EDGE_CA, VERTEX_A, VERTEX_B, VERTEX_C = range(7)
 _EDGE_ENDS = {EDGE_AB: (0, 1), EDGE_BC: (1, 2), EDGE_CA: (2, 0)}
-
-
-def closest_points(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Closest point of each triangle (a, b, c) to the point p (all (k, 3)) and its region
-    (FACE, EDGE_*, VERTEX_*), vectorised from Ericson, Real-Time Collision Detection 5.1.5."""
-    ab, ac, ap = b - a, c - a, p - a
-    bp, cp = p - b, p - c
-
-    def dot(u, v):
-        return np.einsum("ij,ij->i", u, v)
-
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denominator = va + vb + vc
-        point = a + ab * (vb / denominator)[:, None] + ac * (vc / denominator)[:, None]
-        region = np.full(len(p), FACE)
-        # Ericson tests the regions in the order A, B, AB, C, CA, BC: apply them backwards, so
-        # that an earlier test overrides a later one where both hold.
-        cases = [
-            (EDGE_BC, (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
-             lambda: b + ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[:, None] * (c - b)),
-            (EDGE_CA, (vb <= 0) & (d2 >= 0) & (d6 <= 0), lambda: a + (d2 / (d2 - d6))[:, None] * ac),
-            (VERTEX_C, (d6 >= 0) & (d5 <= d6), lambda: c),
-            (EDGE_AB, (vc <= 0) & (d1 >= 0) & (d3 <= 0), lambda: a + (d1 / (d1 - d3))[:, None] * ab),
-            (VERTEX_B, (d3 >= 0) & (d4 <= d3), lambda: b),
-            (VERTEX_A, (d1 <= 0) & (d2 <= 0), lambda: a),
-        ]
-        for code, where, value in cases:
-            if where.any():
-                point = np.where(where[:, None], value(), point)
-                region = np.where(where, code, region)
-    return point, region
 
 
 class TriangleMesh:
@@ -81,9 +57,9 @@ class TriangleMesh:
         normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         self.normals = normal / np.linalg.norm(normal, axis=1)[:, None]
         self.pseudonormals = self._pseudonormals()
-        self.centroids = corners.mean(axis=1)
-        self.bounding_radius = float(np.linalg.norm(corners - self.centroids[:, None], axis=2).max())
-        self.vertex_tree, self.centroid_tree = cKDTree(self.points), cKDTree(self.centroids)
+        samples, self.sample_triangles, self.covering_radius = covering_points(corners[:, 0], corners[:, 1],
+                                                                              corners[:, 2])
+        self.sample_tree = cKDTree(samples)
 
     @classmethod
     def read(cls, path) -> "TriangleMesh":
@@ -116,32 +92,40 @@ class TriangleMesh:
         return out
 
     # -- distances -----------------------------------------------------------------------------
-    def _candidate_pairs(self, points: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(point, triangle) index pairs of the triangles whose bounding sphere reaches within
-        ``radii`` of each point."""
-        lists = self.centroid_tree.query_ball_point(points, radii + 1.000001 * self.bounding_radius)
+    def candidate_pairs(self, points: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(point, triangle) index pairs, each once, of every triangle that may come within
+        ``radii`` of each point: the triangles of the samples within radii + h."""
+        lists = self.sample_tree.query_ball_point(points, radii + self.covering_radius)
         counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-        triangles = np.fromiter((i for x in lists for i in x), dtype=np.int64, count=int(counts.sum()))
-        return np.repeat(np.arange(len(points)), counts), triangles
+        samples = np.fromiter((i for x in lists for i in x), dtype=np.int64, count=int(counts.sum()))
+        key = np.unique(np.repeat(np.arange(len(points)), counts) * len(self.triangles) + self.sample_triangles[samples])
+        return key // len(self.triangles), key % len(self.triangles)
 
-    def local_distances(self, points: np.ndarray, chunk: int = 4096):
+    def distance_bounds(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """In the object's frame: a lower and an upper bound of each point's distance to the
+        surface, D - h and D (module docstring)."""
+        upper = self.sample_tree.query(points)[0]
+        return upper - self.covering_radius, upper
+
+    def local_distances(self, points: np.ndarray, within=np.inf, chunk: int = 4096):
         """In the object's frame: signed gap, unit normal and gap Hessian (k, 3, 3) of each point
-        (module docstring)."""
+        whose distance may be below ``within`` (a number or one per point); a lower bound of the
+        distance, at least ``within``, and zeros for the others (module docstring)."""
         n = len(points)
-        gap, normal, hessian = np.empty(n), np.empty((n, 3)), np.empty((n, 3, 3))
-        for start in range(0, n, chunk):
-            part = slice(start, min(start + chunk, n))
-            gap[part], normal[part], hessian[part] = self._distances(points[part])
+        lower, upper = self.distance_bounds(points)
+        gap, normal, hessian = lower, np.zeros((n, 3)), np.zeros((n, 3, 3))
+        near = np.flatnonzero(lower < within)
+        for start in range(0, len(near), chunk):
+            part = near[start:start + chunk]
+            gap[part], normal[part], hessian[part] = self._distances(points[part], upper[part])
         return gap, normal, hessian
 
-    def _distances(self, points: np.ndarray):
-        # The nearest vertex and the nearest centroid are points of the surface: no triangle
-        # nearer than the nearer of them lies beyond its distance plus a bounding radius.
-        upper = np.minimum(self.vertex_tree.query(points)[0], self.centroid_tree.query(points)[0])
-        which, tri = self._candidate_pairs(points, upper)
+    def _distances(self, points: np.ndarray, upper: np.ndarray):
+        # The nearest triangle is no farther than the nearest sample.
+        which, tri = self.candidate_pairs(points, upper)
         p = points[which]
         corners = self.corners[tri]
-        closest, region = closest_points(p, corners[:, 0], corners[:, 1], corners[:, 2])
+        closest, _, region = closest_points(p, corners[:, 0], corners[:, 1], corners[:, 2])
         distance = np.linalg.norm(p - closest, axis=1)
         # The nearest candidate of each point: sort by (point, distance), take the first.
         order = np.lexsort((distance, which))
@@ -163,12 +147,14 @@ class TriangleMesh:
         projection[reg == FACE] = 0.0
         return sign * d, sign[:, None] * unit, scale[:, None, None] * projection
 
-    def gaps(self, points: np.ndarray, pose: AffineMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def gaps(self, points: np.ndarray, pose: AffineMap, within=np.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signed gap of each point (world) to the surface at ``pose`` (rigid), the unit outward
-        normal there, and the gap's Hessian (k, 3, 3) (module docstring)."""
+        normal there, and the gap's Hessian (k, 3, 3); for the points that are surely farther than
+        ``within`` (a number or one per point) a lower bound of the distance, at least ``within``,
+        and zeros (module docstring)."""
         rotation = pose.matrix
         local = (points - pose.translation) @ rotation
-        gap, normal, hessian = self.local_distances(local)
+        gap, normal, hessian = self.local_distances(local, within)
         return gap, normal @ rotation.T, np.einsum("ij,kjl,ml->kim", rotation, hessian, rotation)
 
     def first_contact(self, points: np.ndarray, steps: np.ndarray, pose: AffineMap,
@@ -179,16 +165,17 @@ class TriangleMesh:
         local = (points - pose.translation) @ rotation
         moves = steps @ rotation
         length = np.linalg.norm(moves, axis=1)
-        gap = self.local_distances(local)[0]
+        # No point comes within the clearance before it has moved its distance less the clearance.
+        lower = self.distance_bounds(local)[0]
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(length > 0.0, (gap - clearance) / length, np.inf)
+            t = np.where(length > 0.0, (lower - clearance) / length, np.inf)
         reachable = np.flatnonzero(t < 1.0)
         if not reachable.size:
             return t
-        which, tri = self._candidate_pairs(local[reachable], length[reachable] + clearance[reachable])
+        which, tri = self.candidate_pairs(local[reachable], length[reachable] + clearance[reachable])
         p, s, c = local[reachable][which], moves[reachable][which], clearance[reachable][which]
         corners = self.corners[tri]
-        closest, _ = closest_points(p, corners[:, 0], corners[:, 1], corners[:, 2])
+        closest = closest_points(p, corners[:, 0], corners[:, 1], corners[:, 2])[0]
         n = self.normals[tri]
         height, approach = np.einsum("ij,ij->i", p - corners[:, 0], n), -np.einsum("ij,ij->i", s, n)
         distance = np.linalg.norm(p - closest, axis=1)

@@ -38,8 +38,8 @@ from petsc4py import PETSc
 import numpy as np
 from dolfinx import fem
 
+from face_dolfinx.alignment.surface import closest_points
 from face_dolfinx.physics.contact import ContactSurface
-from face_dolfinx.physics.rigid_mesh import closest_points
 
 # No point of a Newton step's line-search segment may bring two lip primitives closer than
 # (1 - CCD_KEEP) of their smallest distance now (IPC's conservative rescaling).
@@ -304,5 +304,5 @@ def _contains(corners: np.ndarray, point: np.ndarray) -> np.ndarray:
 def _distance_to_triangles(point: np.ndarray, triangles: np.ndarray) -> float:
     """Distance of ``point`` to the nearest of the triangles (k, 3, 3)."""
     points = np.broadcast_to(point, (len(triangles), 3))
-    closest, _ = closest_points(points, triangles[:, 0], triangles[:, 1], triangles[:, 2])
+    closest = closest_points(points, triangles[:, 0], triangles[:, 1], triangles[:, 2])[0]
     return float(np.linalg.norm(points - closest, axis=1).min())
