@@ -89,7 +89,9 @@ class FaceFitter:
             columns.append(cranium_dofs)
         if self.settings.fit_jaw:
             derivatives = self.formulation.jaw_position_derivatives(state)
-            columns.append(self.sensitivity.boundary_columns(derivatives))
+            teeth = (self.formulation.jaw_teeth_derivatives(state)
+                     if self.problem.teeth_contact is not None else None)
+            columns.append(self.sensitivity.boundary_columns(derivatives, teeth))
         if self.settings.fit_pressure:
             columns.append(self.sensitivity.pressure_columns())
         dofs = np.concatenate(columns)
