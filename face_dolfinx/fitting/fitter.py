@@ -1,8 +1,9 @@
 """Gauss-Newton fitting of activations and bone motion to markers (sifakis2005 sections 5-9).
 
 Per frame, from the previous frame's equilibrium and controls:
-  1. factorise the tangent once, solve for dX/dc (activations, jaw) and add the analytic cranium
-     columns: the marker Jacobian J = W dX/dc;
+  1. factorise the tangent once, solve for dX/dc (activations, jaw; the jaw's with the teeth's
+     mixed term when the teeth's contact is on) and add the analytic cranium columns: the marker
+     Jacobian J = W dX/dc;
   2. the Gauss-Newton step minimises |r + J dc|^2 (r = simulated - captured markers present in
      this frame) under the mode's constraints;
   3. solve the equilibrium at the new controls from the linear prediction X + dX/dc dc; accept the
