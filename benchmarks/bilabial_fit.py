@@ -1,16 +1,18 @@
-"""A speech-like take with lip closures fitted with and without lip self-contact (docs/contact.md,
-"Fitting with contact").
+"""A speech-like take with lip closures fitted without contact, with lip self-contact, and with the
+lips on each other and on the teeth (docs/contact.md, "Fitting with contact").
 
 The synthetic take ``bilabial`` ("ma ba pa": the orbicularis oris at 0.9 presses the lips together
 three times, open vowels between) is solved with lip self-contact (the truth: lips that touch and
-do not pass), sampled at the model's marker sites with noise, and fitted by
-``face_dolfinx.tracking.Tracker`` (the loop of ``run.py fit``) with ``contact`` off and on. Per
+do not pass; ``--truth-teeth``: the lining resting on the teeth too), sampled at the model's marker
+sites with noise, and fitted by ``face_dolfinx.tracking.Tracker`` (the loop of ``run.py fit``) in
+the ``--variants``: ``off``, ``lips`` (lip self-contact) and ``lips+teeth`` (``fit --contact``). Per
 frame: marker RMS error (against the noisy take), activation errors against the truth (largest,
-and that of the orbicularis oris), and the lips' penetration and smallest distance in the fitted
-equilibrium. One JSON row per frame, then a summary row per variant.
+and that of the orbicularis oris), the lips' penetration and smallest distance and the lining's
+deepest penetration into the teeth in the fitted equilibrium, and the Newton iterations of the
+frame. One JSON row per frame, then a summary row per variant.
 
     python benchmarks/provenance.py run --out benchmarks/results/contact/bilabial_5k.jsonl --json-lines -- \\
-        python benchmarks/bilabial_fit.py --tets 5000 --frames 12
+        python benchmarks/bilabial_fit.py --tets 5000 --frames 12 --variants off,lips
 """
 import argparse
 import json
@@ -21,12 +23,21 @@ from mpi4py import MPI
 import numpy as np
 
 
+def teeth_poses(model, controls) -> tuple:
+    """World poses of the model's teeth, bones in sorted order: the upper ones in the cranium frame, the
+    lower ones in the mandible's."""
+    return tuple(controls.cranium if bone == "cranium" else controls.cranium.compose(controls.jaw)
+                 for bone in sorted(model.teeth))
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tets", type=int, default=5000)
     parser.add_argument("--frames", type=int, default=12)
     parser.add_argument("--noise", type=float, default=0.5, help="marker noise, RMS of the 3D error (mm)")
     parser.add_argument("--out", default="runs/bilabial_fit", help="folder for the fit folders")
+    parser.add_argument("--variants", default="off,lips,lips+teeth", help="comma-separated: off, lips, lips+teeth")
+    parser.add_argument("--truth-teeth", action="store_true", help="the truth's lining rests on the teeth too")
     args = parser.parse_args()
 
     from face_dolfinx.alignment.placement import place_on_model
@@ -34,15 +45,24 @@ def main():
     from face_dolfinx.fitting import MarkerSet
     from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.model.folder import load_model
+    from face_dolfinx.physics.contact import TEETH_STIFFNESS, ContactPotential, ContactSettings
     from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.physics.rigid_mesh import TriangleMesh
     from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, lip_facets
     from face_dolfinx.tracking import Tracker, TrackingSettings
+
+    variants = args.variants.split(",")
+    unknown = set(variants) - {"off", "lips", "lips+teeth"}
+    if unknown:
+        raise SystemExit(f"--variants {args.variants}: unknown {', '.join(sorted(unknown))} (use off, lips, lips+teeth)")
 
     comm = MPI.COMM_WORLD
     model = load_model(build_builtin_face(args.tets, comm=comm), comm)
     names = list(model.markers)
     sites = np.array([model.markers[name] for name in names])
-    truth_problem = FaceProblem(model, lip_contact=LipContactSettings())
+    teeth_settings = ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS)
+    truth_problem = FaceProblem(model, lip_contact=LipContactSettings(),
+                                contact=teeth_settings if args.truth_teeth else None)
     began = time.perf_counter()
     capture, truth = synthesize_take(truth_problem, MarkerSet(truth_problem, sites, names=names), model, "bilabial",
                                      n_frames=args.frames, noise=args.noise, head_motion=False)
@@ -51,27 +71,42 @@ def main():
     placement = place_on_model(model, capture)
     sphincter = [i for i, m in enumerate(model.muscles) if m.name.startswith("orbicularis_oris")]
     summaries = []
-    for contact in (False, True):
-        tracker = Tracker(model, TrackingSettings(lip_contact=contact))
+    for contact in variants:
+        # "lips": the tracker's problem without contact, the lips' barrier given as a problem option.
+        lip_option = dict(lip_contact=LipContactSettings()) if contact == "lips" else {}
+        tracker = Tracker(model, TrackingSettings(contact=contact == "lips+teeth"), problem_options=lip_option)
         problem = tracker.problem
         lips = problem.lips or LipContact(problem.V, *lip_facets(model, LipContactSettings()), LipContactSettings(),
                                           problem.bone_blocks)
+        # The lining against the teeth, measured in every variant (the fit's own barrier, or a probe).
+        teeth = problem.teeth_contact or ContactPotential(
+            problem.V, model.facet_tags.find(model.boundary_ids["oral"]),
+            ContactSettings(tuple(TriangleMesh(*model.teeth[bone]) for bone in sorted(model.teeth)),
+                            teeth_poses(model, problem.controls), stiffness=TEETH_STIFFNESS))
+        teeth.ignore(problem.bone_blocks)
         rows = []
+        newton = []
+        problem.solver.snes.setMonitor(lambda snes, iteration, norm, newton=newton: newton.append(iteration))
 
-        def report(result, contact=contact, problem=problem, lips=lips, rows=rows):
+        def report(result, contact=contact, problem=problem, lips=lips, teeth=teeth, rows=rows, newton=newton):
             u = problem.u.x.array
+            teeth.set_poses(teeth_poses(model, problem.controls))
             error = np.abs(result.activations - truth.activations[result.frame])
             row = dict(contact=contact, frame=result.frame, seconds=round(result.seconds, 2),
-                       gn_steps=result.gn_steps, rms_mm=round(result.rms_error, 4),
+                       gn_steps=result.gn_steps, newton_iterations=sum(1 for i in newton if i > 0),
+                       rms_mm=round(result.rms_error, 4),
                        activation_error=round(float(error.max()), 4),
                        orbicularis_error=round(float(error[sphincter].max()), 4),
                        truth_orbicularis=round(float(truth.activations[result.frame][sphincter].max()), 3),
-                       penetration_mm=round(lips.penetration(u), 4), lip_distance_mm=round(lips.min_distance(u), 5))
+                       penetration_mm=round(lips.penetration(u), 4), lip_distance_mm=round(lips.min_distance(u), 5),
+                       teeth_penetration_mm=round(max(0.0, -teeth.min_gap(u)), 4),
+                       teeth_contact_nodes=teeth.contact_nodes(u))
+            newton.clear()
             rows.append(row)
             if comm.rank == 0:
                 print(json.dumps(row), flush=True)
 
-        tracker.track(capture, placement, pathlib.Path(args.out) / ("contact" if contact else "no-contact"),
+        tracker.track(capture, placement, pathlib.Path(args.out) / contact,
                       overwrite=True, on_frame=report, progress=False)
         closed = [r for r in rows if r["truth_orbicularis"] > 0.5]
         summaries.append(dict(
@@ -83,10 +118,12 @@ def main():
             closed_mean_rms_mm=round(float(np.mean([r["rms_mm"] for r in closed])), 4) if closed else None,
             closed_max_orbicularis_error=round(float(np.max([r["orbicularis_error"] for r in closed])), 4)
             if closed else None,
-            max_penetration_mm=round(float(np.max([r["penetration_mm"] for r in rows])), 4)))
+            max_penetration_mm=round(float(np.max([r["penetration_mm"] for r in rows])), 4),
+            max_teeth_penetration_mm=round(float(np.max([r["teeth_penetration_mm"] for r in rows])), 4),
+            mean_newton_iterations=round(float(np.mean([r["newton_iterations"] for r in rows])), 1)))
     if comm.rank == 0:
         print(json.dumps(dict(summary=dict(tets=model.mesh.topology.index_map(3).size_global, ranks=comm.size,
-                                           frames=args.frames, noise_mm=args.noise,
+                                           frames=args.frames, noise_mm=args.noise, truth_teeth=args.truth_teeth,
                                            truth_seconds=round(truth_seconds, 1), variants=summaries))),
               flush=True)
 

@@ -244,7 +244,7 @@ def test_tracking_with_contact_builds_the_lips_into_its_problem(model):
     from face_dolfinx.cli.main import parse_arguments, tracking_settings
     from face_dolfinx.tracking import Tracker
     settings = tracking_settings(parse_arguments(["fit", "take.trc", "--contact"])[0])
-    assert settings.lip_contact and settings.record()["contact"] is True
+    assert settings.contact and settings.record()["contact"] is True
     problem = Tracker(model, settings).problem
     assert problem.lips is not None and problem.lips.settings.where == "--contact"
-    assert problem.solver.energy_terms == (problem.lips,)
+    assert problem.solver.energy_terms == (problem.teeth_contact, problem.lips)

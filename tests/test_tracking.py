@@ -38,7 +38,7 @@ def test_default_preset_is_the_library_default_and_fast_differs_where_documented
                        "newton_tolerance", "refresh_contraction", "line_search_iterations"}
     assert fast.problem_options() == dict(reuse_factorization=True, refresh_contraction=0.5,
                                           newton_tolerance=1e-2, line_search_iterations=3,
-                                          intraoral_pressure=False, lip_contact=None)
+                                          intraoral_pressure=False, lip_contact=None, contact=None)
 
 
 def test_updated_keeps_what_is_none_and_leaves_the_preset_alone():

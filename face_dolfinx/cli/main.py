@@ -1114,8 +1114,11 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="secant iterations of Newton's line search (default 1; 3 cut the slowest "
                         "frames at 404K tets, where the lips move fast, from 94 to 21 s)")
     p.add_argument("--contact", action="store_true", default=None,
-                   help="lip self-contact: the upper and lower lip press on each other instead of passing "
-                        "through (equilibrium and sensitivities include it; docs/contact.md)")
+                   help="contact in every equilibrium, as simulate --contact: the upper and lower lip press on "
+                        "each other instead of passing through, and the lining of the lips and cheeks rests on "
+                        "the model's teeth (a model without teeth: the lips only, with a note in the log); "
+                        "run.json's contact_surfaces records which. The sensitivities include it; exact "
+                        "mode only (docs/contact.md)")
     p.add_argument("--approximate-jacobians", type=float, metavar="MM",
                    help="a Jacobian may use the last factor of the equilibrium solve if it was made at "
                         "a state this close to the equilibrium, instead of a new factorisation "

@@ -1,8 +1,9 @@
 """Gauss-Newton fitting of activations and bone motion to markers (sifakis2005 sections 5-9).
 
 Per frame, from the previous frame's equilibrium and controls:
-  1. factorise the tangent once, solve for dX/dc (activations, jaw) and add the analytic cranium
-     columns: the marker Jacobian J = W dX/dc;
+  1. factorise the tangent once, solve for dX/dc (activations, jaw; the jaw's with the teeth's
+     mixed term when the teeth's contact is on) and add the analytic cranium columns: the marker
+     Jacobian J = W dX/dc;
   2. the Gauss-Newton step minimises |r + J dc|^2 (r = simulated - captured markers present in
      this frame) under the mode's constraints;
   3. solve the equilibrium at the new controls from the linear prediction X + dX/dc dc; accept the
@@ -89,7 +90,9 @@ class FaceFitter:
             columns.append(cranium_dofs)
         if self.settings.fit_jaw:
             derivatives = self.formulation.jaw_position_derivatives(state)
-            columns.append(self.sensitivity.boundary_columns(derivatives))
+            teeth = (self.formulation.jaw_teeth_derivatives(state)
+                     if self.problem.teeth_contact is not None else None)
+            columns.append(self.sensitivity.boundary_columns(derivatives, teeth))
         if self.settings.fit_pressure:
             columns.append(self.sensitivity.pressure_columns())
         dofs = np.concatenate(columns)

@@ -22,7 +22,7 @@ from scipy.optimize import lsq_linear
 
 from . import penalties
 from face_dolfinx.model.bones import AffineMap, jaw_pose, rotation, tmj_upper_limits
-from face_dolfinx.sensitivities.columns import bone_position_derivatives
+from face_dolfinx.sensitivities.columns import bone_position_derivatives, teeth_pose_derivatives
 
 MIN_TRUST_RADIUS = 0.01
 TMJ_STEP = 1e-6  # central-difference step of the closed-form jaw pose (rad, mm)
@@ -95,8 +95,18 @@ class Formulation(ABC):
         dofs (12, dofs) and the markers (12, markers, 3)."""
 
     @abstractmethod
+    def jaw_parameters(self, state: ControlState) -> tuple:
+        """(pose_of, values, step): the bone frames (cranium, jaw) as a function of the jaw
+        controls, their values at ``state`` and the central-difference step of their derivatives."""
+
     def jaw_position_derivatives(self, state: ControlState):
         """d(jaw boundary positions)/d(jaw controls) at ``state``, for the jaw's columns."""
+        return bone_position_derivatives(self.problem, *self.jaw_parameters(state))
+
+    def jaw_teeth_derivatives(self, state: ControlState):
+        """d(teeth poses)/d(jaw controls) at ``state`` (``teeth_pose_derivatives``), for the jaw's
+        columns of a problem with teeth contact: the lower teeth move with the mandible."""
+        return teeth_pose_derivatives(self.problem, *self.jaw_parameters(state))
 
     def start_frame(self, targets: np.ndarray, present: np.ndarray, warm: bool) -> None:
         """Per-frame settings, before its first objective; ``warm``: not the first frame."""
@@ -164,9 +174,9 @@ class ExactFormulation(Formulation):
         combine = head_combination(state.cranium)
         return combine @ dofs, np.tensordot(combine, markers, axes=1)
 
-    def jaw_position_derivatives(self, state):
+    def jaw_parameters(self, state):
         pose = lambda p: (state.cranium, jaw_pose(self.jaw_geometry, *p))  # noqa: E731
-        return bone_position_derivatives(self.problem, pose, state.tmj, TMJ_STEP)
+        return pose, state.tmj, TMJ_STEP
 
     def tmj_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds of the TMJ values: opening (rad), right and left slides (mm)."""
@@ -255,6 +265,10 @@ class PaperFormulation(Formulation):
 
     def __init__(self, problem, settings):
         super().__init__(problem, settings)
+        if problem.teeth_contact is not None and (settings.fit_head or settings.fit_jaw):
+            # The teeth are rigid objects placed by the bone frames: an affine frame would shear them.
+            raise ValueError("the paper mode's affine cranium and jaw frames cannot carry the teeth (rigid contact "
+                             "objects): fit with the teeth in exact mode, or without the teeth")
         self.rho_start = self.rho_final = 0.0
 
     def initial_state(self) -> ControlState:
@@ -272,10 +286,10 @@ class PaperFormulation(Formulation):
     def head_columns(self, state, dofs, markers):
         return dofs, markers
 
-    def jaw_position_derivatives(self, state):
+    def jaw_parameters(self, state):
         params = np.concatenate([state.jaw.matrix.reshape(-1), state.jaw.translation])
         pose = lambda p: (state.cranium, AffineMap(p[:9], p[9:]))  # noqa: E731
-        return bone_position_derivatives(self.problem, pose, params, 1.0)
+        return pose, params, 1.0
 
     def start_frame(self, targets, present, warm):
         spread = np.nanstd(targets[present]) if present.any() else 1.0

@@ -468,3 +468,47 @@ class ContactPotential:
         finally:
             solver.bcs.remove(held)
             solver.controls_changed()
+
+    # -- derivatives in the objects' poses ------------------------------------------------------
+    def pose_rate_forces(self, displacement: np.ndarray, rates) -> np.ndarray:
+        """(nodes, 3) the rate of change of dE_c/dx at every contact node, the nodes held still,
+        while the objects move at ``rates``: per object (dM, dt), the derivatives of its pose's
+        matrix and translation in one parameter, or None for an object that stays.
+
+        A rigid object (pose M y + t, M a rotation) moves its points with the velocity
+        v(x) = W (x - t) + dt, W = dM M^T (skew). Its gap field g(x) = g0(M^T (x - t)) then changes
+        at dg = -n . v and its unit normal at dn = W n - H v (H the gap's world Hessian), so the
+        nodal gradient s A b'(g) n (s = stiffness / dhat, A the node's area) changes at
+        s A [b''(g) dg n + b'(g) dn]. Refuses a pose or a rate that is not rigid."""
+        x = self.positions(displacement)
+        out = np.zeros((self.surface.num_nodes, 3))
+        scale = self.stiffness / self.dhat
+        identity = np.eye(3)
+        for obj, pose, rate in zip(self.objects, self.poses, rates):
+            if rate is None:
+                continue
+            dM, dt = np.asarray(rate[0], dtype=float).reshape(3, 3), np.asarray(rate[1], dtype=float).reshape(3)
+            M = pose.matrix
+            W = dM @ M.T
+            size = 1.0 + np.abs(dM).max() + np.abs(dt).max()
+            if np.abs(M.T @ M - identity).max() > 1e-8 or np.abs(W + W.T).max() > 1e-6 * size:
+                raise ValueError(f"{self.settings.where}: the {obj.describe()} moves non-rigidly (an affine "
+                                 "bone frame): the contact's derivative in its pose needs rigid frames")
+            gap, normal, curvature = obj.gaps(x, pose)
+            active = np.flatnonzero((gap < self.dhat) & ~self.ignored)
+            n = normal[active]
+            v = (x[active] - pose.translation) @ W.T + dt
+            first, second = barrier_derivatives(gap[active], self.dhat)
+            curvature = curvature[active]
+            gap_hessian = (curvature if curvature.ndim == 3
+                           else curvature[:, None, None] * (identity - n[:, :, None] * n[:, None, :]))
+            gap_rate = -np.einsum("ij,ij->i", n, v)
+            normal_rate = n @ W.T - np.einsum("kij,kj->ki", gap_hessian, v)
+            np.add.at(out, active, (scale * self.surface.areas[active])[:, None]
+                      * ((second * gap_rate)[:, None] * n + first[:, None] * normal_rate))
+        return out
+
+    def add_pose_rate(self, displacement: np.ndarray, rates, b: PETSc.Vec, scale: float = 1.0) -> None:
+        """b += scale * ``pose_rate_forces`` on this rank's dofs (collective)."""
+        values = b.array.reshape(-1, 3)
+        values[self.surface.owned_blocks] += scale * self.pose_rate_forces(displacement, rates)[self.surface.owned_nodes]

@@ -3,13 +3,15 @@
 At an equilibrium f(X(c), c) = 0, with K the tangent (identity rows on Dirichlet dofs):
   activations       K dX/da_i = f_i                                   (eq. 5)
   intraoral p       K dX/dp = df/dp, the load of a unit pressure (f is linear in p)
-  bone-driven b_i   K dX/db_i = -K_UC dX^C/db_i, and dX^C/db_i on C   (eq. 6, by lifting)
+  bone-driven b_i   K dX/db_i = -K_UC dX^C/db_i - d(grad E_c)/db_i, and dX^C/db_i on C
+                    (eq. 6, by lifting; the last term when the teeth's barrier E_c moves with the bones)
   cranium frame     dX/db_i = (dM_c/db_i) y + dt_c/db_i,  y = M_c^-1 (x - t_c)   (analytic)
 One factorisation of K serves every right-hand side; it is the equilibrium solver's own (same
 matrix, same KSP), so with factorisation reuse the next Newton solves start from it too. A caller
 that can live with an approximate K (Gauss-Newton directions) may keep a factor the Newton solve
 made at a state close to the equilibrium instead of factorising again.
 """
+from dataclasses import replace
 import math
 
 from petsc4py import PETSc
@@ -94,21 +96,31 @@ class EquilibriumSensitivity:
         """dX/dp for the intraoral pressure: (1, local dofs incl. ghosts)."""
         return self._solve_all(lambda j: self.problem.pressure_force(out=self._rhs), 1)
 
-    def boundary_columns(self, bone_derivatives: np.ndarray) -> np.ndarray:
+    def boundary_columns(self, bone_derivatives: np.ndarray, teeth_derivatives=None) -> np.ndarray:
         """dX/db for parameters that move the bone-attached nodes non-rigidly (the jaw).
 
         ``bone_derivatives`` (k, num bone blocks, 3): dX^C/db_i at ``problem.bone_blocks``.
+        ``teeth_derivatives`` (``teeth_pose_derivatives``): how the same parameters move the
+        teeth, for a problem with teeth contact; the lining resting on teeth that move with the
+        bone then follows them (the mixed term -d(grad E_c)/db_i on the right-hand side). A problem
+        with teeth contact needs it unless the parameters leave the teeth where they are.
         """
-        jacobian_form = self.problem.solver.jacobian_form
+        problem = self.problem
+        jacobian_form = problem.solver.jacobian_form
+        teeth = problem.teeth_contact if teeth_derivatives is not None else None
+        if teeth is not None and len(teeth_derivatives) != len(bone_derivatives):
+            raise ValueError(f"{len(teeth_derivatives)} teeth pose derivatives for {len(bone_derivatives)} parameters")
 
         def lifted(j):
             values = self._lift.x.array.reshape(-1, 3)
             values[:] = 0.0
-            values[self.problem.bone_blocks] = bone_derivatives[j]
+            values[problem.bone_blocks] = bone_derivatives[j]
             with self._rhs.localForm() as local:
                 local.set(0.0)
             fem_petsc.apply_lifting(self._rhs, [jacobian_form], bcs=[[self._lift_bc]])
             self._rhs.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            if teeth is not None:  # the teeth leave out the bone-held nodes: nothing on the rows set below
+                teeth.add_pose_rate(problem.u.x.array, teeth_derivatives[j], self._rhs, scale=-1.0)
             fem_petsc.set_bc(self._rhs, [self._lift_bc])
         return self._solve_all(lifted, len(bone_derivatives))
 
@@ -148,3 +160,23 @@ def bone_position_derivatives(problem, pose_of, params: np.ndarray, step: float)
         backward = problem.bone_positions(*pose_of(params - bump))
         derivatives.append((forward - backward) / (2 * step))
     return np.array(derivatives)
+
+
+def teeth_pose_derivatives(problem, pose_of, params: np.ndarray, step: float) -> list:
+    """d(pose)/dp_i of each of the problem's teeth (``FaceProblem.teeth_poses``) for a bone pose
+    ``pose_of(p) -> (cranium, jaw)``: per parameter, one (dM, dt) per teeth surface, by central
+    differences (the parameters and ``step`` of ``bone_position_derivatives``). Empty tuples for
+    a problem without teeth contact."""
+    params = np.asarray(params, dtype=float)
+    derivatives = []
+    for i in range(len(params)):
+        bump = np.zeros_like(params)
+        bump[i] = step
+        poses = []
+        for sign in (1.0, -1.0):
+            cranium, jaw = pose_of(params + sign * bump)
+            poses.append(problem.teeth_poses(replace(problem.controls, cranium=cranium, jaw=jaw)))
+        derivatives.append(tuple(((forward.matrix - backward.matrix) / (2 * step),
+                                  (forward.translation - backward.translation) / (2 * step))
+                                 for forward, backward in zip(*poses)))
+    return derivatives

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, fields, replace
 
 from face_dolfinx.equilibrium.solver import REFRESH_CONTRACTION
 from face_dolfinx.fitting import FitSettings
+from face_dolfinx.physics.contact import TEETH_STIFFNESS, ContactSettings
 from face_dolfinx.physics.self_contact import LipContactSettings
 
 # record key (= fit option) -> (where it lives, field name): "fit" in FitSettings, "solver" here.
@@ -37,7 +38,7 @@ RECORD_FIELDS = {
     "newton_tolerance": ("solver", "newton_tolerance"),
     "refresh_contraction": ("solver", "refresh_contraction"),
     "line_search_iterations": ("solver", "line_search_iterations"),
-    "contact": ("solver", "lip_contact"),
+    "contact": ("solver", "contact"),
 }
 
 
@@ -57,7 +58,9 @@ class TrackingSettings:
     refresh_contraction: float = REFRESH_CONTRACTION
     newton_tolerance: float = 1e-8  # mm: Newton stops once no node moves further in a correction
     line_search_iterations: int = 1
-    lip_contact: bool = False  # the lips press on each other instead of passing (physics/self_contact.py)
+    # The lips press on each other instead of passing (physics/self_contact.py) and the lining of
+    # the lips and cheeks rests on the model's teeth (physics/contact.py): ``contact_surfaces``.
+    contact: bool = False
 
     def __post_init__(self):
         checks = (
@@ -73,6 +76,9 @@ class TrackingSettings:
             ("newton_tolerance", self.newton_tolerance > 0, "give a positive distance in mm"),
             ("refresh_contraction", 0 < self.refresh_contraction < 1, "give a factor between 0 and 1"),
             ("line_search_iterations", self.line_search_iterations >= 1, "give 1 or more"),
+            ("contact", not (self.contact and self.fit.mode == "paper" and (self.fit.fit_head or self.fit.fit_jaw)),
+             "the teeth move with the exact mode's rigid bone frames, not the paper mode's affine ones: "
+             "fit with contact in exact mode"),
         )
         for key, valid, requirement in checks:
             if not valid:
@@ -96,11 +102,25 @@ class TrackingSettings:
         """The settings by record key, as a fit folder stores them."""
         return {key: self.value(key) for key in RECORD_FIELDS}
 
-    def problem_options(self) -> dict:
-        """The ``FaceProblem`` keywords (the pressure control is a control of the problem too)."""
-        return {**{f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("fit", "lip_contact")},
+    def contact_surfaces(self, model=None) -> tuple:
+        """What touches what in the equilibria of a fit of ``model``: with ``contact``, the lips
+        each other ("lips") and the lining of the lips and cheeks the model's teeth ("teeth"), if it
+        has teeth; a model without them keeps the lips only (a tracker logs it, run.json records it)."""
+        if not self.contact:
+            return ()
+        if model is None:
+            raise ValueError("with contact, the model decides whether its teeth take part: give it")
+        return ("lips", "teeth") if model.teeth else ("lips",)
+
+    def problem_options(self, model=None) -> dict:
+        """The ``FaceProblem`` keywords (the pressure control and the contact are the problem's
+        too); ``model`` is needed with ``contact`` (``contact_surfaces``)."""
+        surfaces = self.contact_surfaces(model)
+        teeth = ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS, where="--contact") if "teeth" in surfaces else None
+        return {**{f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("fit", "contact")},
                 "intraoral_pressure": self.fit.fit_pressure,
-                "lip_contact": LipContactSettings(where="--contact") if self.lip_contact else None}
+                "lip_contact": LipContactSettings(where="--contact") if "lips" in surfaces else None,
+                "contact": teeth}
 
 
 PRESETS = {

@@ -82,14 +82,18 @@ class Tracker:
         """This rank group's ``FaceProblem``."""
         if self._problem is None:
             model = load_model(self.model.path, self.group_comm) if self.rank_groups > 1 else self.model
-            self._problem = FaceProblem(model, **self.settings.problem_options(), **self.problem_options)
+            if self.settings.contact and not model.teeth and self.comm.rank == 0:
+                log.warning("model %s has no teeth ([teeth] in its model.toml): contact holds the lips on each "
+                            "other only", model.path)
+            self._problem = FaceProblem(model, **self.settings.problem_options(model), **self.problem_options)
         return self._problem
 
     def record(self, capture: Capture, placement, *, chunks: int = 1, extra: dict | None = None) -> dict:
         """The settings a fit folder stores and compares on resume (``run.json``)."""
         source = capture.source
         return dict(capture=str(pathlib.Path(source).resolve()) if source else None, model=str(self.model.path),
-                    **self.settings.record(), frames=capture.n_frames, chunks=chunks,
+                    **self.settings.record(), contact_surfaces=list(self.settings.contact_surfaces(self.model)),
+                    frames=capture.n_frames, chunks=chunks,
                     alignment=placement.method, neutral_frame=placement.neutral_frame, **(extra or {}))
 
     def open_folder(self, out, capture: Capture, placement, *, chunks: int = 1, truth_file=None,
