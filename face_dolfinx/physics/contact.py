@@ -494,7 +494,7 @@ class ContactPotential:
             if np.abs(M.T @ M - identity).max() > 1e-8 or np.abs(W + W.T).max() > 1e-6 * size:
                 raise ValueError(f"{self.settings.where}: the {obj.describe()} moves non-rigidly (an affine "
                                  "bone frame): the contact's derivative in its pose needs rigid frames")
-            gap, normal, curvature = obj.gaps(x, pose)
+            gap, normal, curvature = obj.gaps(x, pose, within=self.dhat)
             active = np.flatnonzero((gap < self.dhat) & ~self.ignored)
             n = normal[active]
             v = (x[active] - pose.translation) @ W.T + dt
