@@ -132,6 +132,33 @@ def test_lips_pressed_on_the_teeth(pressed):
     assert problem.residual_norm() < 1e-6
 
 
+def test_newton_tangent_projects_the_barrier_blocks(pressed):
+    """With the lips pressed on the teeth, Newton's barrier Hessian is every node's exact 3 x 3
+    block projected onto the positive semidefinite ones: each block is PSD, differs from the exact
+    one by a PSD matrix and equals it where the exact one is PSD."""
+    from petsc4py import PETSc
+    problem = pressed[0]
+    teeth = problem.teeth_contact
+    x = problem.u.vector
+    matrices = [problem.solver.tangent.duplicate() for _ in range(2)]
+    for matrix in matrices:
+        matrix.zeroEntries()
+    teeth.add_hessian(x, matrices[0], np.zeros(0, dtype=np.int32))
+    projected = teeth.add_newton_hessian(x, matrices[1], np.zeros(0, dtype=np.int32))
+    first = x.getOwnershipRange()[0]
+    negative = 0
+    for block in teeth.surface.owned_blocks:
+        rows = (first + 3 * block + np.arange(3)).astype(PETSc.IntType)
+        exact, newton = (m.getValues(rows, rows) for m in matrices)
+        scale = max(np.abs(exact).max(), 1e-300)
+        assert np.linalg.eigvalsh(newton).min() >= -1e-9 * scale
+        assert np.linalg.eigvalsh(newton - exact).min() >= -1e-9 * scale
+        if np.linalg.eigvalsh(exact).min() >= 0.0:
+            assert np.abs(newton - exact).max() <= 1e-12 * scale
+        negative += np.linalg.eigvalsh(exact).min() < -1e-9 * scale
+    assert projected == (MPI.COMM_WORLD.allreduce(negative, op=MPI.SUM) > 0)
+
+
 def test_same_force_on_one_rank(model, builtin_model_path, pressed):
     problem = pressed[0]
     serial = FaceProblem(load_model(builtin_model_path, MPI.COMM_SELF),
