@@ -36,7 +36,7 @@ from face_dolfinx.physics.contact import TEETH_STIFFNESS, ContactSettings
 from face_dolfinx.physics.points import PointEvaluator
 from face_dolfinx.physics.problem import FaceProblem
 
-TERMS = ("energy", "add_gradient", "add_hessian", "add_newton_hessian", "step_fraction")
+TERMS = ("energy", "add_gradient", "add_hessian", "add_newton_correction", "step_fraction")
 THIN_DHAT, THIN_CLEARANCE = 0.05, 0.3
 
 

@@ -595,21 +595,13 @@ class QuasistaticSolver:
             return reasons.DIVERGED_LINE_SEARCH
         return reasons.CONVERGED_ITERATING
 
-    def assemble_tangent(self, A: PETSc.Mat, newton: bool = False) -> bool:
-        """Assemble the tangent at the unknown into ``A`` (Dirichlet rows and columns identity).
-        ``newton``: for a Newton correction, where a term with ``add_newton_hessian`` (a Hessian
-        made positive semidefinite) adds that instead of its exact one. Returns whether A is the
-        exact tangent."""
+    def assemble_tangent(self, A: PETSc.Mat) -> None:
+        """Assemble the tangent at the unknown into ``A`` (Dirichlet rows and columns identity)."""
         A.zeroEntries()
         fem_petsc.assemble_matrix(A, self.jacobian_form, bcs=self.bcs, coeffs=self._coefficients(1))
         A.assemble()
-        exact = True
         for term in self.energy_terms:
-            if newton and hasattr(term, "add_newton_hessian"):
-                exact = not term.add_newton_hessian(self.unknown.vector, A, self._constrained_dofs()) and exact
-            else:
-                term.add_hessian(self.unknown.vector, A, self._constrained_dofs())
-        return exact
+            term.add_hessian(self.unknown.vector, A, self._constrained_dofs())
 
     def _assemble_tangent(self, snes, x, A, P):
         linear_iterations = None
@@ -620,11 +612,16 @@ class QuasistaticSolver:
             linear_iterations = snes.getKSP().getIterationNumber()
         if self.reuse_policy.keep_factor(snes.getIterationNumber(), linear_iterations):
             return  # P is untouched, so the PC keeps its factor: a modified Newton iteration
-        exact = self.assemble_tangent(P, newton=True)
+        self.assemble_tangent(P)
+        # A term may modify its Hessian for Newton's corrections (add_newton_correction); the
+        # factor of that matrix serves Newton, not the sensitivities (factor_distance).
+        exact = True
+        for term in self.energy_terms:
+            if hasattr(term, "add_newton_correction"):
+                exact = not term.add_newton_correction(self.unknown.vector, P, self._constrained_dofs()) and exact
         # The PC sees a changed matrix and factorises it when the KSP is set up.
         self.factorizations += 1
         self.reuse_policy.factorised(in_newton=True)
-        # A factor of a modified Hessian serves Newton, not the sensitivities (factor_distance).
         self._factor_controls_current = exact
         x.copy(self._factor_state)
 
