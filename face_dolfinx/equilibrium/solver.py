@@ -613,10 +613,16 @@ class QuasistaticSolver:
         if self.reuse_policy.keep_factor(snes.getIterationNumber(), linear_iterations):
             return  # P is untouched, so the PC keeps its factor: a modified Newton iteration
         self.assemble_tangent(P)
+        # A term may modify its Hessian for Newton's corrections (add_newton_correction); the
+        # factor of that matrix serves Newton, not the sensitivities (factor_distance).
+        exact = True
+        for term in self.energy_terms:
+            if hasattr(term, "add_newton_correction"):
+                exact = not term.add_newton_correction(self.unknown.vector, P, self._constrained_dofs()) and exact
         # The PC sees a changed matrix and factorises it when the KSP is set up.
         self.factorizations += 1
         self.reuse_policy.factorised(in_newton=True)
-        self._factor_controls_current = True
+        self._factor_controls_current = exact
         x.copy(self._factor_state)
 
     def _constrained_dofs(self) -> np.ndarray:

@@ -38,6 +38,15 @@ from face_dolfinx.model.bones import AffineMap
 # (IPC's conservative rescaling of the time of impact, 0.8, is the same bound for a plane).
 CCD_KEEP = 0.8
 
+# Conservative advancement of the collision-free bound (``advanced_contact``): at most this many
+# distance queries per step; a point whose advance fell below ADVANCE_STALL of its time so far is
+# at a true contact and stops.
+ADVANCE_ROUNDS = 8
+ADVANCE_STALL = 0.02
+
+# Relative size of an eigenvalue of a barrier block below which it is round-off.
+ROUND_OFF = 1e-10
+
 # Where the push-out predictor puts a node that an object's new pose would overlap: at this
 # fraction of dhat from the object, where the barrier pressure is about the stiffness.
 PUSH_GAP = 0.5
@@ -46,6 +55,17 @@ PUSH_GAP = 0.5
 # orbicularis oris presses them there (docs/contact.md); 10 kPa leaves gaps of a few micrometres
 # and Newton crawls.
 TEETH_STIFFNESS = 100.0
+
+# mm: the teeth's dhat. The barrier must reach further than a Newton correction's overshoot: a
+# lining node outside dhat does not feel the teeth in the linearisation, and each one arriving cuts
+# the whole step (the orbicularis oris at 0.1 on the 5K face: 68 Newton iterations in 2 load steps
+# at 0.05 mm, 13 in one at 0.5 mm; docs/contact.md). The built-in teeth sit far enough behind the
+# lining that the rest state is barrier-free.
+TEETH_DHAT = 0.5
+
+# mm: when the jaw moves, the lining nodes this close to a tooth are carried with it
+# (``ContactPotential.carry``).
+CARRY_REACH = 2.0
 
 # Reference tetrahedron (basix): facet i is opposite vertex i; edge e joins these vertices.
 _TET_EDGES = ((2, 3), (1, 3), (1, 2), (0, 3), (0, 2), (0, 1))
@@ -68,6 +88,32 @@ def barrier_derivatives(g: np.ndarray, dhat: float) -> tuple[np.ndarray, np.ndar
     inactive = g >= dhat
     return (np.where(inactive, 0.0, np.where(g > 0.0, first, np.nan)),
             np.where(inactive, 0.0, np.where(g > 0.0, second, np.nan)))
+
+
+def advanced_contact(obj, pose, points: np.ndarray, steps: np.ndarray, clearance: np.ndarray,
+                     bound: np.ndarray) -> np.ndarray:
+    """A first-contact time ``bound`` (a lower bound per point of when points + t steps comes
+    within ``clearance`` of ``obj``) pushed towards the true one by conservative advancement: the
+    signed distance changes no faster than the point moves, so from a time t at which the point
+    is g away the clearance is not reached before t + (g - clearance) / |step|. Each round is one
+    distance query of the points still short of t = 1; ADVANCE_ROUNDS of them. A node sliding
+    along a triangle surface keeps its distance, which a bound from planes and tangents (a
+    triangle mesh's ``first_contact``) does not see: measured on the teeth, bounds of 0.2-0.3 for
+    sliding lining nodes that never came within the clearance over the whole step."""
+    t = np.minimum(bound, 1.0)
+    speed = np.linalg.norm(steps, axis=1)
+    pending = np.flatnonzero((t < 1.0) & (speed > 0.0))
+    for _ in range(ADVANCE_ROUNDS):
+        if not pending.size:
+            break
+        # A lower bound of the gap (the cut-off) advances less, never too far.
+        remaining = (1.0 - t[pending]) * speed[pending] + clearance[pending]
+        gap = obj.gaps(points[pending] + t[pending, None] * steps[pending], pose, within=remaining)[0]
+        gain = (gap - clearance[pending]) / speed[pending]
+        t[pending] = np.minimum(t[pending] + np.maximum(gain, 0.0), 1.0)
+        # Done: at t = 1, or stuck at the clearance (a true contact within the step).
+        pending = pending[(t[pending] < 1.0) & (gain > ADVANCE_STALL * t[pending])]
+    return np.where(t >= 1.0, np.maximum(bound, 1.0), t)
 
 
 @dataclass(frozen=True)
@@ -188,7 +234,8 @@ class ContactSettings:
     the barrier's activation distance ``dhat`` (mm) and ``stiffness`` (kPa, about the contact
     pressure at g = dhat / 2), and the tagged boundary ``surface`` that touches them. With
     ``teeth``, the model's teeth (``FaceModel.teeth``, each moving with its bone frame) touch the
-    facets tagged ``teeth_surface`` (the lining of the lips and cheeks) with the same barrier."""
+    facets tagged ``teeth_surface`` (the lining of the lips and cheeks) with the same stiffness and
+    their own activation distance ``teeth_dhat`` (mm)."""
 
     objects: tuple = ()
     poses: tuple = ()
@@ -198,6 +245,7 @@ class ContactSettings:
     where: str = "the contact settings"  # named in error messages (a file, an option)
     teeth: bool = False
     teeth_surface: str = "oral"
+    teeth_dhat: float = TEETH_DHAT
 
     def rest_poses(self) -> tuple:
         return tuple(self.poses) if self.poses else tuple(AffineMap() for _ in self.objects)
@@ -315,11 +363,14 @@ class ContactPotential:
         """Current positions of all contact nodes (every rank)."""
         return self.surface.rest + self.surface.gather(displacement)
 
-    def gaps(self, displacement: np.ndarray, poses=None) -> np.ndarray:
-        """(objects, nodes) signed gaps; negative inside an object."""
+    def gaps(self, displacement: np.ndarray, poses=None, within=None) -> np.ndarray:
+        """(objects, nodes) signed gaps; negative inside an object. With ``within`` (mm), exact
+        only for the nodes closer than that, a lower bound above it for the others (the objects'
+        cut-off)."""
         x = self.positions(displacement)
         poses = self.poses if poses is None else poses
-        gaps = np.array([obj.gaps(x, pose)[0] for obj, pose in zip(self.objects, poses)]).reshape(-1, len(x))
+        gaps = np.array([obj.gaps(x, pose, within=within)[0]
+                         for obj, pose in zip(self.objects, poses)]).reshape(-1, len(x))
         gaps[:, self.ignored] = np.inf
         return gaps
 
@@ -380,6 +431,30 @@ class ContactPotential:
     def add_hessian(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> None:
         """A += d2E_c/du2 on this rank's rows (assembled); the rows and columns of ``constrained``
         (owned local dofs, a Dirichlet condition's) are left alone."""
+        self._add_blocks(self._hessian_blocks(x), x, A, constrained)
+
+    def add_newton_correction(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> bool:
+        """A += the change that makes ``add_hessian``'s blocks those of Newton's tangent: every
+        node's 3 x 3 block projected onto the positive semidefinite ones (its negative eigenvalues
+        set to 0; IPC's practice). Next to an edge or a vertex of a triangle mesh the exact block
+        b'' n n^T + b' d2g/dx2 has the negative part b' (I - n n^T - e e^T) / d (b' < 0), which
+        grows as the gap closes (down to -1.1e4 mN/mm while the lips settled on the 5K face's
+        teeth): the projected tangent keeps every correction a descent direction. Returns whether
+        a block changed (the same on every rank; A is untouched otherwise)."""
+        blocks = self._hessian_blocks(x)
+        values, vectors = np.linalg.eigh(blocks)
+        # Blocks over a face (b'' n n^T) have two zero eigenvalues that come out as round-off.
+        negative = values.min(axis=1) < -ROUND_OFF * np.abs(values).max(axis=1)
+        if not negative.any():
+            return False
+        change = np.zeros_like(blocks)
+        change[negative] = np.einsum("nij,nj,nkj->nik", vectors[negative], np.maximum(-values[negative], 0.0),
+                                     vectors[negative])
+        self._add_blocks(change, x, A, constrained)
+        return True
+
+    def _hessian_blocks(self, x: PETSc.Vec) -> np.ndarray:
+        """(nodes, 3, 3): d2E_c/dx2 of every contact node (the same on every rank)."""
         blocks = np.zeros((self.surface.num_nodes, 3, 3))
         scale = self.stiffness / self.dhat
         identity = np.eye(3)
@@ -391,6 +466,11 @@ class ContactPotential:
             gap_hessian = curvature if curvature.ndim == 3 else curvature[:, None, None] * (identity - nn)
             local = second[:, None, None] * nn + first[:, None, None] * gap_hessian
             np.add.at(blocks, active, scale * self.surface.areas[active][:, None, None] * local)
+        return blocks
+
+    def _add_blocks(self, blocks: np.ndarray, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> None:
+        """A += the (nodes, 3, 3) ``blocks`` on the diagonal, this rank's rows, the rows and columns
+        of ``constrained`` left alone; A assembled."""
         owned = self.surface.owned_nodes
         touched = np.flatnonzero(np.abs(blocks[owned]).sum(axis=(1, 2)) > 0.0)
         free = np.ones(x.getLocalSize(), dtype=bool)
@@ -417,7 +497,9 @@ class ContactPotential:
         fraction = 1.0
         for obj, pose in zip(self.objects, self.poses):
             gap = obj.gaps(points, pose, within=reach)[0]
-            t = obj.first_contact(points, moves, pose, (1.0 - CCD_KEEP) * gap)
+            clearance = (1.0 - CCD_KEEP) * gap
+            t = advanced_contact(obj, pose, points, moves, clearance,
+                                 obj.first_contact(points, moves, pose, clearance))
             fraction = min(fraction, float(t.min(initial=np.inf)))
         return fraction
 
@@ -443,6 +525,44 @@ class ContactPotential:
         values = out.reshape(-1, 3)
         values[self.surface.owned_blocks] = moved[self.surface.owned_nodes]
         return out, np.flatnonzero(held)
+
+    def carry(self, poses, solver, reach: float) -> int:
+        """Put the objects at ``poses``, carrying along the surface nodes that rest on them: every
+        node within ``reach`` (mm) of an object at its present pose is held, for one Newton solve
+        of ``solver``, where the object's move from its present pose to its new one takes it, and
+        left out of the barrier meanwhile. The held nodes keep their gaps to the object they rest
+        on, the flesh follows them and the bones (whose Dirichlet values the solve reaches as
+        well), and the solve that follows releases them. A jaw opening with the lining left behind
+        would otherwise drag the lining along the teeth in collision-limited steps that also cut
+        the bones' motion short. Returns the Newton iterations it took."""
+        u = solver.unknown
+        x = self.positions(u.x.array)
+        gaps = self.gaps(u.x.array, within=reach)
+        nearest, closest = gaps.argmin(axis=0), gaps.min(axis=0)
+        held = closest < reach
+        target = x.copy()
+        for k, (old, new) in enumerate(zip(self.poses, poses)):
+            chosen = held & (nearest == k)
+            target[chosen] = new.compose(old.inverse()).apply(x[chosen])
+        self.set_poses(poses)
+        solver.controls_changed()
+        if not held.any():
+            return 0
+        values = fem.Function(u.function_space)
+        values.x.array[:] = u.x.array
+        local = held[self.surface.local_nodes]
+        values.x.array.reshape(-1, 3)[self.surface.local_blocks[local]] = \
+            (target - self.surface.rest)[self.surface.local_nodes[local]]
+        condition = fem.dirichletbc(values, self.surface.local_blocks[local])
+        solver.bcs.append(condition)
+        ignored = self.ignored
+        self.ignored = ignored | held
+        try:
+            return solver.newton()[1]
+        finally:
+            self.ignored = ignored
+            solver.bcs.remove(condition)
+            solver.controls_changed()
 
     def move_to(self, poses, solver) -> int:
         """Put the objects at ``poses``, first pushing the surface out of them (``push_out``) and

@@ -45,7 +45,7 @@ from face_dolfinx.model.folder import cell_midpoints
 from face_dolfinx.model.regions import material_fields
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
-from face_dolfinx.physics.contact import CCD_KEEP, PUSH_GAP, ContactPotential, ContactSettings
+from face_dolfinx.physics.contact import CARRY_REACH, CCD_KEEP, PUSH_GAP, ContactPotential, ContactSettings
 from face_dolfinx.physics.self_contact import LIP_NEWTON_ITERATIONS, LipContact, LipContactSettings, lip_facets
 from face_dolfinx.physics.material import FaceMaterial, FiberSlot
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
@@ -349,10 +349,11 @@ class FaceProblem:
                                                         "to rest on the teeth")
         objects = tuple(TriangleMesh(*self.model.teeth[bone], name=f"teeth on the {bone}") for bone in self.teeth_bones)
         teeth = ContactPotential(self.V, self.model.facet_tags.find(tag),
-                                 replace(settings, objects=objects, poses=(), surface=settings.teeth_surface, where=where))
+                                 replace(settings, objects=objects, poses=(), dhat=settings.teeth_dhat,
+                                         surface=settings.teeth_surface, where=where))
         # The bones' nodes move with their own teeth; the barrier must not cut their path short.
         teeth.ignore(self.bone_blocks)
-        teeth.check_clear(self.u.x.array, margin=settings.dhat)
+        teeth.check_clear(self.u.x.array, margin=settings.teeth_dhat)
         return teeth
 
     def teeth_poses(self, controls: Controls) -> tuple:
@@ -505,20 +506,29 @@ class FaceProblem:
             new = start.cranium.interpolate(target.cranium, t1)
             if not old.same_as(new):
                 self._move_rigidly(old, new)
-            held.append(self._clear_objects(start.interpolate(target, t1)))
+            held.append(self._clear_objects(start.interpolate(target, t1), start.interpolate(target, t0)))
 
         report = self.solver.solve_continuation(controls_at, predictor=predictor,
                                                 max_halvings=max_halvings)
         self.set_controls(target)
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
 
-    def _clear_objects(self, controls: Controls) -> int:
+    def _clear_objects(self, controls: Controls, before: Controls | None = None) -> int:
         """Move the objects to their poses in ``controls`` (``ContactPotential.move_to``): a start
-        that Newton's barrier accepts, near the equilibrium. The teeth move so only where their new
-        poses would take more of a lining node's gap than a collision-free step may and leave it
-        closer than PUSH_GAP dhat (the bones closing in on the lining); otherwise they move with the
-        bone frames in the solve. Returns the Newton iterations it took."""
+        that Newton's barrier accepts, near the equilibrium. When the jaw moves from its pose in
+        ``before`` (the equilibrium the unknown holds, carried along the cranium's change), the
+        lining resting on the teeth moves with them in a solve that reaches the new bone frames
+        (``ContactPotential.carry``). Otherwise the teeth move so only where their new poses would
+        take more of a lining node's gap than a collision-free step may and leave it closer than
+        PUSH_GAP dhat (the bones closing in on the lining), else with the bone frames in the solve.
+        Returns the Newton iterations it took."""
         iterations = self.contact.move_to(controls.objects, self.solver) if self.contact is not None else 0
+        if self.teeth_contact is not None and before is not None and not before.jaw.same_as(controls.jaw):
+            self.set_controls(controls)
+            # The unknown went along the cranium's change already: so did the teeth it rests on.
+            change = controls.cranium.compose(before.cranium.inverse())
+            self.teeth_contact.set_poses(tuple(change.compose(pose) for pose in self.teeth_poses(before)))
+            return iterations + self.teeth_contact.carry(self.teeth_poses(controls), self.solver, CARRY_REACH)
         if self.teeth_contact is not None:
             poses = self.teeth_poses(controls)
             now = self.teeth_contact.gaps(self.u.x.array)
