@@ -363,7 +363,7 @@ class ContactPotential:
         """Current positions of all contact nodes (every rank)."""
         return self.surface.rest + self.surface.gather(displacement)
 
-    def gaps(self, displacement: np.ndarray, poses=None, within=None) -> np.ndarray:
+    def gaps(self, displacement: np.ndarray, poses=None, within=np.inf) -> np.ndarray:
         """(objects, nodes) signed gaps; negative inside an object. With ``within`` (mm), exact
         only for the nodes closer than that, a lower bound above it for the others (the objects'
         cut-off)."""
