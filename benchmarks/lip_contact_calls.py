@@ -1,0 +1,78 @@
+"""What the lips' contact terms cost per call inside a solve, and a fingerprint of its iterates.
+
+The lip closure of ``benchmarks/lip_contact.py`` (the jaw ``--jaw`` degrees beyond its rest pose,
+the orbicularis oris at 1, ``FaceProblem(lip_contact=LipContactSettings())``), solved once from
+rest with the contact terms timed (energy, gradient, Hessian, collision-free step: calls and ms
+per call). The SHA-256 of every Newton iterate (each rank's owned values, in order) fingerprints
+the solve, so that two versions of the contact code can be shown to take the same iterates bit
+for bit: run this script with each on the same machine and compare ``iterates_sha256``.
+
+    python benchmarks/provenance.py run --out benchmarks/results/contact/lip_calls_5k-20k.jsonl --json-lines -- \\
+        python benchmarks/lip_contact_calls.py --tets 5000 20000
+"""
+import argparse
+import hashlib
+import json
+import pathlib
+import sys
+import time
+
+import ipctk
+from mpi4py import MPI
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from contact_teeth import TERMS, Timed  # noqa: E402
+from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
+from face_dolfinx.model.bones import jaw_pose  # noqa: E402
+from face_dolfinx.model.folder import load_model  # noqa: E402
+from face_dolfinx.physics.problem import FaceProblem  # noqa: E402
+from face_dolfinx.physics.self_contact import LipContactSettings  # noqa: E402
+
+
+def run(tets: int, angle: float, label: str) -> dict:
+    comm = MPI.COMM_WORLD
+    model = load_model(build_builtin_face(target_tets=tets, comm=comm), comm)
+    problem = FaceProblem(model, lip_contact=LipContactSettings())
+    timer = Timed(problem.lips)
+    digest, iterates = hashlib.sha256(), [0]
+
+    def monitor(snes, iteration, norm):
+        digest.update(snes.getSolution().array_r.tobytes())
+        iterates[0] += 1
+
+    problem.solver.snes.setMonitor(monitor)
+    sphincter = {m.name: 1.0 for m in model.muscles if m.name.startswith("orbicularis_oris")}
+    began = time.perf_counter()
+    report = problem.solve(activations=sphincter, jaw=jaw_pose(model.jaw, np.radians(angle)))
+    seconds = comm.allreduce(time.perf_counter() - began, op=MPI.MAX)
+    contact_seconds = {name: comm.allreduce(timer.seconds[name], op=MPI.MAX) for name in TERMS}
+    ranks_digest = hashlib.sha256("".join(comm.allgather(digest.hexdigest())).encode()).hexdigest()
+    return dict(study="lip_contact_calls", code=label, ipctk_threads=ipctk.get_num_threads(), tets=model.mesh.topology.index_map(3).size_global,
+                ranks=comm.size, jaw_deg=angle, converged=report.converged,
+                newton_iterations=report.newton_iterations, load_steps=report.load_steps, iterates=iterates[0],
+                seconds=round(seconds, 2), contact_seconds=round(sum(contact_seconds.values()), 2),
+                calls=timer.calls,
+                ms_per_call={name: round(1e3 * contact_seconds[name] / max(timer.calls[name], 1), 2) for name in TERMS},
+                lip_nodes=problem.lips.surface.num_nodes, pairs=problem.lips.pairs(problem.u.x.array),
+                iterates_sha256=ranks_digest)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tets", type=int, nargs="+", default=[5000])
+    parser.add_argument("--jaw", type=float, default=-2.0, help="jaw opening, degrees (negative: beyond closed)")
+    parser.add_argument("--label", default="", help="names the code version in the rows (e.g. its commit)")
+    parser.add_argument("--ipctk-threads", type=int, default=0,
+                        help="threads of the IPC Toolkit (0: its default); with 1 its sums are reproducible")
+    args = parser.parse_args()
+    if args.ipctk_threads:
+        ipctk.set_num_threads(args.ipctk_threads)
+    for tets in args.tets:
+        row = run(tets, args.jaw, args.label)
+        if MPI.COMM_WORLD.rank == 0:
+            print(json.dumps(row), flush=True)
+
+
+if __name__ == "__main__":
+    main()
