@@ -5,7 +5,12 @@ the orbicularis oris at 1, ``FaceProblem(lip_contact=LipContactSettings())``), s
 rest with the contact terms timed (energy, gradient, Hessian, collision-free step: calls and ms
 per call). The SHA-256 of every Newton iterate (each rank's owned values, in order) fingerprints
 the solve, so that two versions of the contact code can be shown to take the same iterates bit
-for bit: run this script with each on the same machine and compare ``iterates_sha256``.
+for bit: run this script with each on the same machine and compare ``iterates_sha256`` (with
+``--ipctk-threads 1``: the IPC Toolkit's threaded sums differ in their last bits from run to run).
+Then, at the pressed lips, ``--rounds`` times what one Newton iteration asks of the lips (gradient,
+Hessian and the bound of a step as long as the lips' smallest distance, at one state), at the
+equilibrium and at a state moved by a tenth of that distance in turn, so that every round meets a new state: ms per round and per call,
+free of the solve's other work.
 
     python benchmarks/provenance.py run --out benchmarks/results/contact/lip_calls_5k-20k.jsonl --json-lines -- \\
         python benchmarks/lip_contact_calls.py --tets 5000 20000
@@ -19,6 +24,7 @@ import time
 
 import ipctk
 from mpi4py import MPI
+from petsc4py import PETSc
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
@@ -30,7 +36,34 @@ from face_dolfinx.physics.problem import FaceProblem  # noqa: E402
 from face_dolfinx.physics.self_contact import LipContactSettings  # noqa: E402
 
 
-def run(tets: int, angle: float, label: str) -> dict:
+def iteration_rounds(problem, rounds: int) -> dict:
+    """ms per call of the lips' gradient, Hessian and step bound, called in that order at one state
+    per round, the states alternating between the equilibrium and a nearby one."""
+    lips = problem.lips
+    here = problem.u.vector.copy()
+    step = here.duplicate()
+    step.array[:] = np.random.default_rng(problem.comm.rank).uniform(-1.0, 1.0, step.getLocalSize())
+    # A step of the lips' smallest distance: the step bound runs its CCD, as in the closing solve.
+    step.scale(lips.min_distance(problem.u.x.array) / max(step.norm(PETSc.NormType.NORM_INFINITY), 1e-300))
+    there = here.copy()
+    there.axpy(0.1, step)
+    b, A = here.duplicate(), problem.solver.tangent.duplicate()
+    no_dofs = np.zeros(0, dtype=np.int32)
+    seconds = dict.fromkeys(("add_gradient", "add_hessian", "step_fraction"), 0.0)
+    for round_ in range(rounds):
+        x = here if round_ % 2 == 0 else there
+        for name, call in (("add_gradient", lambda: lips.add_gradient(x, b)),
+                           ("add_hessian", lambda: lips.add_hessian(x, A, no_dofs)),
+                           ("step_fraction", lambda: lips.step_fraction(x, step, 1.0))):
+            began = time.perf_counter()
+            call()
+            seconds[name] += time.perf_counter() - began
+    seconds = {name: problem.comm.allreduce(value, op=MPI.MAX) for name, value in seconds.items()}
+    return dict(rounds=rounds, ms_per_round=round(1e3 * sum(seconds.values()) / rounds, 2),
+                ms_per_call={name: round(1e3 * value / rounds, 2) for name, value in seconds.items()})
+
+
+def run(tets: int, angle: float, label: str, rounds: int) -> dict:
     comm = MPI.COMM_WORLD
     model = load_model(build_builtin_face(target_tets=tets, comm=comm), comm)
     problem = FaceProblem(model, lip_contact=LipContactSettings())
@@ -55,7 +88,7 @@ def run(tets: int, angle: float, label: str) -> dict:
                 calls=timer.calls,
                 ms_per_call={name: round(1e3 * contact_seconds[name] / max(timer.calls[name], 1), 2) for name in TERMS},
                 lip_nodes=problem.lips.surface.num_nodes, pairs=problem.lips.pairs(problem.u.x.array),
-                iterates_sha256=ranks_digest)
+                iterates_sha256=ranks_digest, iteration_rounds=iteration_rounds(problem, rounds))
 
 
 def main() -> None:
@@ -63,13 +96,14 @@ def main() -> None:
     parser.add_argument("--tets", type=int, nargs="+", default=[5000])
     parser.add_argument("--jaw", type=float, default=-2.0, help="jaw opening, degrees (negative: beyond closed)")
     parser.add_argument("--label", default="", help="names the code version in the rows (e.g. its commit)")
+    parser.add_argument("--rounds", type=int, default=200, help="rounds of the lips' terms at the pressed lips")
     parser.add_argument("--ipctk-threads", type=int, default=0,
                         help="threads of the IPC Toolkit (0: its default); with 1 its sums are reproducible")
     args = parser.parse_args()
     if args.ipctk_threads:
         ipctk.set_num_threads(args.ipctk_threads)
     for tets in args.tets:
-        row = run(tets, args.jaw, args.label)
+        row = run(tets, args.jaw, args.label, args.rounds)
         if MPI.COMM_WORLD.rank == 0:
             print(json.dumps(row), flush=True)
 
