@@ -109,7 +109,7 @@ def run(tets: int, angle: float, label: str, rounds: int, compare_with: str | No
                 ranks=comm.size, jaw_deg=angle, converged=report.converged,
                 newton_iterations=report.newton_iterations, load_steps=report.load_steps, iterates=iterates[0],
                 seconds=round(seconds, 2), contact_seconds=round(sum(contact_seconds.values()), 2),
-                calls=timer.calls,
+                calls=dict(timer.calls),
                 ms_per_call={name: round(1e3 * contact_seconds[name] / max(timer.calls[name], 1), 2) for name in TERMS},
                 lip_nodes=problem.lips.surface.num_nodes, pairs=problem.lips.pairs(problem.u.x.array),
                 iterates_sha256=ranks_digest,
