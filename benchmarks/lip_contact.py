@@ -17,7 +17,6 @@ import time
 
 from mpi4py import MPI
 import numpy as np
-from dolfinx import fem
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from provenance import record  # noqa: E402
@@ -25,25 +24,15 @@ from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
 from face_dolfinx.model.bones import jaw_pose  # noqa: E402
 from face_dolfinx.model.folder import load_model  # noqa: E402
 from face_dolfinx.physics.problem import FaceProblem  # noqa: E402
-from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, lip_facets  # noqa: E402
+from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, LipIterates, lip_facets  # noqa: E402
 
 
 def run(model, angle: float, settings: LipContactSettings | None) -> tuple[dict, FaceProblem, LipContact]:
     problem = FaceProblem(model, lip_contact=settings)
     lips = problem.lips or LipContact(problem.V, *lip_facets(model, LipContactSettings()), LipContactSettings(),
                                       problem.bone_blocks)
-    distances, depths = [], []
-
-    iterate, owned = fem.Function(problem.V), problem.u.vector.getLocalSize()
-
-    def monitor(snes, iteration, norm):
-        iterate.x.array[:owned] = snes.getSolution().array_r  # with its ghosts, for the cells' corners
-        iterate.x.scatter_forward()
-        x = iterate.x.array
-        distances.append(lips.min_distance(x))
-        depths.append(lips.penetration(x))
-
-    problem.solver.snes.setMonitor(monitor)
+    iterates = LipIterates(lips, problem.V)
+    problem.solver.snes.setMonitor(iterates)
     sphincter = {m.name: 1.0 for m in model.muscles if m.name.startswith("orbicularis_oris")}
     began = time.perf_counter()
     report = problem.solve(activations=sphincter, jaw=jaw_pose(model.jaw, np.radians(angle)))
@@ -52,8 +41,8 @@ def run(model, angle: float, settings: LipContactSettings | None) -> tuple[dict,
     row = dict(self_contact=settings is not None, dhat=settings.dhat if settings else None,
                stiffness=settings.stiffness if settings else None, jaw_deg=angle, converged=report.converged,
                newton_iterations=report.newton_iterations, load_steps=report.load_steps, seconds=round(seconds, 2),
-               iterates=len(distances), smallest_distance_any_iterate=min(distances),
-               deepest_penetration_any_iterate=max(depths), final_distance=lips.min_distance(u),
+               iterates=len(iterates.distances), smallest_distance_any_iterate=min(iterates.distances),
+               deepest_penetration_any_iterate=max(iterates.depths), final_distance=lips.min_distance(u),
                final_penetration=lips.penetration(u), pairs=lips.pairs(u) if settings else 0,
                tets=model.mesh.topology.index_map(3).size_global, lip_nodes=lips.surface.num_nodes)
     return row, problem, lips

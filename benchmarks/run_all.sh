@@ -30,6 +30,19 @@ $PYTHON $FORWARD --collect runs/forward_table.md $forward
 record $RESULTS/contact/teeth_5k-20k_np1.jsonl $PYTHON benchmarks/contact_teeth.py --tets 5000 20000
 # The teeth's gradient, Hessian and step per call on that solve's iterates: sampled search against the centroid search.
 record $RESULTS/contact/teeth_terms_5k-20k_np1.jsonl $PYTHON benchmarks/contact_teeth_terms.py --tets 5000 20000
+# The lips' terms per Newton iteration, this version against one that built the collision set in every call
+# (rounds in turn), and the closing solve's iterates (bit for bit with the IPC Toolkit on one thread).
+git show 944f7b8:face_dolfinx/physics/self_contact.py > runs/self_contact_944f7b8.py
+lips=$RESULTS/contact/lip_calls_5k-20k_np1.jsonl
+$PYTHON benchmarks/provenance.py start $lips
+add $lips $PYTHON benchmarks/lip_contact_calls.py --tets 5000 20000 --compare-with runs/self_contact_944f7b8.py
+add $lips $PYTHON benchmarks/lip_contact_calls.py --tets 5000 --ipctk-threads 1
+# A warm tracking frame with lip and teeth contact against the same frame without (fit --fast, one run).
+record $RESULTS/contact/tracking_5k_np1.jsonl $PYTHON benchmarks/contact_tracking.py --tets 5000 --frames 4 --max-seconds 900
+record $RESULTS/contact/tracking_5k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py --tets 5000 --frames 3 \
+  --max-seconds 600
+record $RESULTS/contact/tracking_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py --tets 400000 \
+  --frames 3 --max-seconds 3600
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

@@ -12,13 +12,12 @@ from petsc4py import PETSc
 import numpy as np
 import pytest
 import dolfinx.fem.petsc as fem_petsc
-from dolfinx import fem
 
 from face_dolfinx.model.bones import jaw_pose
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.points import PointEvaluator
 from face_dolfinx.physics.problem import FaceProblem
-from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, lip_facets
+from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, LipIterates, lip_facets
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity
 
 CLOSED = np.radians(-2.0)  # the jaw 2 degrees beyond its rest (closed) pose
@@ -62,22 +61,12 @@ def test_without_contact_the_lips_pass_through_each_other(model):
 
 def test_no_iterate_penetrates(model):
     problem = FaceProblem(model, lip_contact=LipContactSettings())
-    distances, depths = [], []
-
-    iterate, owned = fem.Function(problem.V), problem.u.vector.getLocalSize()
-
-    def monitor(snes, iteration, norm):
-        iterate.x.array[:owned] = snes.getSolution().array_r  # with its ghosts, for the cells' corners
-        iterate.x.scatter_forward()
-        x = iterate.x.array
-        distances.append(problem.lips.min_distance(x))
-        depths.append(problem.lips.penetration(x))
-
-    problem.solver.snes.setMonitor(monitor)
+    iterates = LipIterates(problem.lips, problem.V)
+    problem.solver.snes.setMonitor(iterates)
     report = problem.solve(activations=sphincter(model), jaw=jaw_pose(model.jaw, CLOSED))
     problem.solver.snes.cancelMonitor()
     assert report.converged and report.load_steps == 1
-    assert len(distances) > 10 and min(distances) > 0.0 and max(depths) == 0.0
+    assert len(iterates.distances) > 10 and min(iterates.distances) > 0.0 and max(iterates.depths) == 0.0
     u = problem.u.x.array
     assert 0.0 < problem.lips.min_distance(u) < problem.lips.dhat
     assert problem.lips.pairs(u) > 20
@@ -159,6 +148,33 @@ def test_gradient_and_hessian_against_differences_of_the_energy(pressed):
     assert Hv.norm() > 0.1 * Kv.norm()
     assert A.isSymmetric(1e-8 * A.norm())
     at(0.0)
+
+
+def test_a_state_seen_again_gives_what_a_fresh_lip_contact_gives(pressed, model):
+    """The lips keep the collision set of the last state they saw: energy, gradient, Hessian and
+    step bound at two states in turn, and back, equal those of a new ``LipContact`` exactly."""
+    settings = LipContactSettings()
+    lips = pressed.lips
+    u = pressed.u.vector.copy()
+    step = _free_direction(pressed, 3)
+    step.scale(0.5 * lips.min_distance(pressed.u.x.array) / step.norm(PETSc.NormType.NORM_INFINITY))
+    moved = u.copy()
+    moved.axpy(0.2, step)
+
+    def terms(contact, x):
+        b = x.duplicate()
+        b.set(0.0)
+        contact.add_gradient(x, b)
+        A = pressed.solver.tangent.duplicate()
+        A.zeroEntries()
+        contact.add_hessian(x, A, np.zeros(0, dtype=np.int32))
+        return contact.energy(x), b.array.copy(), A.norm(), contact.step_fraction(x, step, 1.0)
+
+    for x in (u, moved, u):
+        fresh = LipContact(pressed.V, *lip_facets(model, settings), settings, pressed.bone_blocks)
+        kept, new = terms(lips, x), terms(fresh, x)
+        assert kept[0] == new[0] and np.array_equal(kept[1], new[1]) and kept[2:] == new[2:]
+    assert terms(lips, moved)[0] != terms(lips, u)[0]
 
 
 def test_the_tangents_sparsity_holds_the_lip_pairs(pressed):

@@ -29,6 +29,9 @@ step so that no point of the line-search segment lets two lip primitives come cl
 Under MPI every rank gathers all lip nodes (a few hundred) and computes the same pairs; each adds
 the gradient and Hessian rows of the nodes it owns (columns anywhere). The energy and the step
 bound are reduced (min) over the ranks so that every rank takes the same step.
+
+The collision set (broad and narrow phase) is built once per state: the energy, gradient, Hessian
+and step bound at the same lip positions (an exact compare with the last ones) share it.
 """
 from dataclasses import dataclass
 
@@ -157,6 +160,7 @@ class LipContact:
         self.mesh = ipctk.CollisionMesh(np.asfortranarray(self.surface.rest), np.asfortranarray(edges),
                                         np.asfortranarray(faces))
         self.potential = ipctk.BarrierPotential(self.dhat, self.stiffness, True)
+        self._last = None  # the last state's collisions (``_state``)
         # The cells near the lips (vertex blocks, rest corners, global vertex blocks), for
         # ``penetration``.
         cells = space.mesh.topology.index_map(3).size_local
@@ -183,21 +187,34 @@ class LipContact:
         """(lip nodes, 3) current positions (every rank; the owned part of ``displacement`` read)."""
         return np.asfortranarray(self.surface.rest + self.surface.gather(displacement))
 
+    def _state(self, vertices: np.ndarray) -> "_LipState":
+        """The broad and narrow phase at ``vertices``: the same state as the last call's (an exact
+        compare) reuses its results, so that the energy, gradient, Hessian and step bound of one
+        Newton iterate build the collision set once."""
+        if self._last is None or not np.array_equal(vertices, self._last.vertices):
+            self._last = _LipState(self.mesh, vertices.copy(order="F"), self.dhat)
+        return self._last
+
     def _collisions(self, vertices: np.ndarray) -> ipctk.NormalCollisions:
-        collisions = ipctk.NormalCollisions()
-        collisions.use_area_weighting = True
-        collisions.build(self.mesh, vertices, self.dhat)
-        return collisions
+        return self._state(vertices).collisions
 
     def min_distance(self, displacement: np.ndarray, reach: float = np.inf) -> float:
         """Smallest distance between lip primitives that share no vertex (mm; 0 once they
         intersect), or ``reach`` if none is closer than that."""
-        vertices = self.positions(displacement)
-        if ipctk.has_intersections(self.mesh, vertices):
+        return self._min_distance_at(self.positions(displacement), reach)
+
+    def _min_distance_at(self, vertices: np.ndarray, reach: float) -> float:
+        state = self._state(vertices)
+        if state.intersects:
             return 0.0
         reach = min(reach, ipctk.world_bbox_diagonal_length(vertices))
-        collisions = ipctk.NormalCollisions()
-        collisions.build(self.mesh, vertices, reach)
+        if reach == self.dhat:
+            # The pairs within dhat are the barrier's collision set (its area weights do not
+            # change the distances).
+            collisions = state.collisions
+        else:
+            collisions = ipctk.NormalCollisions()
+            collisions.build(self.mesh, vertices, reach)
         # ipctk's distances are squared.
         return float(np.sqrt(collisions.compute_minimum_distance(self.mesh, vertices))) if len(collisions) else reach
 
@@ -243,10 +260,8 @@ class LipContact:
     def energy(self, x: PETSc.Vec) -> float:
         """E_s at the displacement ``x`` (the same on every rank; inf once the lips intersect)."""
         vertices = self.positions(x.array_r)
-        if ipctk.has_intersections(self.mesh, vertices):
-            value = np.inf
-        else:
-            value = float(self.potential(self._collisions(vertices), self.mesh, vertices))
+        state = self._state(vertices)
+        value = np.inf if state.intersects else float(self.potential(state.collisions, self.mesh, vertices))
         return self.comm.allreduce(value, op=MPI.MAX)
 
     def add_gradient(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
@@ -263,12 +278,12 @@ class LipContact:
             hessian = self.potential.hessian(collisions, self.mesh, vertices).tocsr()
             owned_rows = (3 * self.surface.owned_nodes[:, None] + np.arange(3)).reshape(-1)
             global_dof = (3 * self.global_blocks[:, None] + np.arange(3)).reshape(-1).astype(PETSc.IntType)
-            local = hessian[owned_rows].tocoo()
+            local = hessian[owned_rows]
             if local.nnz:
-                rows, columns = global_dof[owned_rows[local.row]], global_dof[local.col]
-                for row in np.unique(rows):
-                    here = rows == row
-                    A.setValues([row], columns[here], local.data[here], addv=PETSc.InsertMode.ADD_VALUES)
+                # All rows in one call (PETSc loops over them): a Python loop over the rows cost
+                # more than the Hessian itself.
+                A.setValuesIJV(local.indptr.astype(PETSc.IntType), global_dof[local.indices], local.data,
+                               addv=PETSc.InsertMode.ADD_VALUES, rowmap=global_dof[owned_rows])
         A.assemble()
 
     def step_fraction(self, x: PETSc.Vec, step: PETSc.Vec, largest: float) -> float:
@@ -280,7 +295,7 @@ class LipContact:
         """The same bound for the straight path from the displacement ``start`` to ``end`` (dof
         arrays, owned part read); the same on every rank."""
         v0, v1 = self.positions(start), self.positions(end)
-        distance = self.min_distance(start, self.dhat)
+        distance = self._min_distance_at(v0, self.dhat)
         # Every point of a primitive moves at most as far as its farthest vertex: two that close in
         # by less than CCD_KEEP of the smallest distance cannot come closer than the bound.
         # (The ranks may differ in the last bits of ipctk's threaded reductions: they agree by the
@@ -290,6 +305,48 @@ class LipContact:
             fraction = float(ipctk.compute_collision_free_stepsize(self.mesh, v0, v1, (1.0 - CCD_KEEP) * distance,
                                                                     narrow_phase_ccd=NARROW_PHASE))
         return self.comm.allreduce(fraction, op=MPI.MIN)
+
+
+class LipIterates:
+    """A SNES monitor (``solver.snes.setMonitor(LipIterates(lips, space))``) that records at every
+    Newton iterate the lips' smallest distance (``distances``) and their deepest penetration
+    (``depths``, ``LipContact.penetration``), both in mm."""
+
+    def __init__(self, lips: LipContact, space: fem.FunctionSpace):
+        self.lips = lips
+        self.distances, self.depths = [], []
+        self.iterate = fem.Function(space)  # the iterate with its ghosts, for the cells' corners
+        self.owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+
+    def __call__(self, snes, iteration: int, norm: float) -> None:
+        self.iterate.x.array[:self.owned] = snes.getSolution().array_r
+        self.iterate.x.scatter_forward()
+        self.distances.append(self.lips.min_distance(self.iterate.x.array))
+        self.depths.append(self.lips.penetration(self.iterate.x.array))
+
+
+class _LipState:
+    """The lips' collision queries at one set of vertex positions, each computed on first use."""
+
+    def __init__(self, mesh: ipctk.CollisionMesh, vertices: np.ndarray, dhat: float):
+        self.mesh, self.vertices, self.dhat = mesh, vertices, dhat
+        self._collisions, self._intersects = None, None
+
+    @property
+    def collisions(self) -> ipctk.NormalCollisions:
+        """The barrier's pairs within dhat, with the IPC Toolkit's area weights."""
+        if self._collisions is None:
+            self._collisions = ipctk.NormalCollisions()
+            self._collisions.use_area_weighting = True
+            self._collisions.build(self.mesh, self.vertices, self.dhat)
+        return self._collisions
+
+    @property
+    def intersects(self) -> bool:
+        """Whether any two lip triangles intersect."""
+        if self._intersects is None:
+            self._intersects = bool(ipctk.has_intersections(self.mesh, self.vertices))
+        return self._intersects
 
 
 def _contains(corners: np.ndarray, point: np.ndarray) -> np.ndarray:

@@ -1,0 +1,252 @@
+"""What lip and teeth contact cost in a warm-started tracking frame: the same frames tracked with
+contact off and on, one after the other in one run (docs/performance.md, "Contact in tracking").
+
+A bilabial take ("ma ba pa", ``capture/synthetic.py``: the orbicularis oris at 0.9 presses the
+lips together with the jaw closed, then an open vowel) of ``--take-frames`` frames at 60 Hz is
+solved with lip contact (the truth: lips that touch and do not pass) at the model's marker sites,
+with 0.5 mm noise and no head motion; the stretch of ``--frames`` frames from ``--start`` (by
+default the lips closing) is tracked by ``face_dolfinx.tracking.Tracker`` (the loop of
+``run.py fit``, every frame written to a fit folder under ``--out``) with ``fit --fast``
+(``PRESETS["fast"]``), first without contact, then with the lips' barrier and the teeth
+(``TrackingSettings(contact=True)``, what ``fit --contact`` builds), each variant on a problem of
+its own.
+
+One JSON line per frame as it is done (rank 0): seconds of the fit, Newton iterations (every
+Newton solve of the frame, the teeth's push-out included), Gauss-Newton steps, factorisations,
+residual evaluations, seconds and calls inside the contact terms (energy, gradient, Hessian,
+collision-free step and the pull-back of a Gauss-Newton prediction, timed by wrapping them; the
+largest over the ranks), lip barrier pairs and teeth contact nodes at the fitted equilibrium, the
+lips' smallest distance and penetration (also without contact: how far they pass), marker RMS and
+activation error. Then one summary line: per variant the means over the warm frames (every frame
+but the first, which starts from rest) and, per warm frame both variants fitted, the time ratio
+contact on / off, against the target of at most 1.5.
+
+It cannot run for ever: no variant starts a frame once it has tracked for ``--max-seconds``, and
+the whole run stops (summary line with what it has, then MPI abort) after ``--abort-seconds``.
+
+    python benchmarks/provenance.py run --out benchmarks/results/contact/tracking_5k_np1.jsonl --json-lines -- \\
+        python benchmarks/contact_tracking.py --tets 5000
+    python benchmarks/provenance.py run --out benchmarks/results/contact/tracking_404k_np2.jsonl --json-lines -- \\
+        mpirun -n 2 python benchmarks/contact_tracking.py --tets 400000 --frames 4 --max-seconds 1800
+"""
+import argparse
+import json
+import logging
+import pathlib
+import threading
+import time
+
+from mpi4py import MPI
+import numpy as np
+
+TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5 times one without
+TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
+COUNTERS = ("factorizations", "residual_evaluations")  # QuasistaticSolver's
+
+
+class TimedTerm:
+    """A contact term's methods (those of ``TIMED_TERMS`` it has), timed: seconds and calls."""
+
+    def __init__(self, term):
+        self.names = [name for name in TIMED_TERMS if hasattr(term, name)]
+        self.seconds = dict.fromkeys(self.names, 0.0)
+        self.calls = dict.fromkeys(self.names, 0)
+        for name in self.names:
+            setattr(term, name, self._wrap(name, getattr(term, name)))
+
+    def _wrap(self, name, method):
+        def timed(*args, **kwargs):
+            began = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                self.seconds[name] += time.perf_counter() - began
+                self.calls[name] += 1
+        return timed
+
+
+class NewtonCount:
+    """Newton iterations of every ``solver.newton()`` (continuation steps and push-outs included)."""
+
+    def __init__(self, solver):
+        self.iterations = 0
+        newton = solver.newton
+
+        def counted():
+            result = newton()
+            self.iterations += result[1]
+            return result
+        solver.newton = counted
+
+
+class OutOfTime(Exception):
+    """A variant's ``--max-seconds`` are used up: no frame is started after the one just done."""
+
+
+def track_variant(name, model, capture, placement, truth, args, comm, began, rows: list) -> None:
+    """Track the stretch with contact off (``no-contact``) or on (``contact``), appending a row per
+    frame to ``rows`` as it is done."""
+    from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, lip_facets
+    from face_dolfinx.tracking import PRESETS, Tracker
+
+    contact = name == "contact"
+    settings = PRESETS["fast"].updated(dict(contact=contact))
+    tracker = Tracker(model, settings)
+    problem = tracker.problem
+    # Without contact the lips are only measured (how far they pass), by a LipContact of their own.
+    lips = problem.lips or LipContact(problem.V, *lip_facets(model, LipContactSettings()), LipContactSettings(),
+                                      problem.bone_blocks)
+    timers = {label: TimedTerm(term) for label, term in (("lips", problem.lips), ("teeth", problem.teeth_contact))
+              if term is not None}
+    newton = NewtonCount(problem.solver)
+    last = dict(newton=0, **{c: 0 for c in COUNTERS},
+                **{f"{label}.{term}": (0.0, 0) for label, t in timers.items() for term in t.names})
+    start = time.perf_counter()
+
+    def report(result):
+        u = problem.u.x.array
+        row = dict(variant=name, frame=args.start + result.frame, warm=bool(rows), seconds=round(result.seconds, 2),
+                   gn_steps=result.gn_steps, newton_iterations=newton.iterations - last["newton"])
+        last["newton"] = newton.iterations
+        for counter in COUNTERS:
+            value = getattr(problem.solver, counter)
+            row[counter], last[counter] = value - last[counter], value
+        by_term, calls = {}, {}
+        for label, timer in timers.items():
+            for term in timer.names:
+                key = f"{label}.{term}"
+                seconds, count = timer.seconds[term], timer.calls[term]
+                by_term[key] = round(comm.allreduce(seconds - last[key][0], op=MPI.MAX), 3)
+                calls[key] = count - last[key][1]
+                last[key] = (seconds, count)
+        row.update(contact_seconds=round(sum(by_term.values()), 2),
+                   **{f"{label}_seconds": round(sum(v for k, v in by_term.items() if k.startswith(label + ".")), 2)
+                      for label in ("lips", "teeth")},
+                   contact_share=round(sum(by_term.values()) / max(result.seconds, 1e-9), 3),
+                   contact_seconds_by_term=by_term, contact_calls=calls,
+                   lip_pairs=problem.lips.pairs(u) if problem.lips is not None else None,
+                   teeth_contact_nodes=(problem.teeth_contact.contact_nodes(u)
+                                        if problem.teeth_contact is not None else None),
+                   lip_distance_mm=round(lips.min_distance(u), 5), lip_penetration_mm=round(lips.penetration(u), 3),
+                   rms_mm=round(result.rms_error, 3),
+                   activation_error=round(float(np.abs(result.activations - truth.activations[result.frame]).max()), 3),
+                   elapsed_s=round(time.perf_counter() - began, 1))
+        rows.append(row)
+        if comm.rank == 0:
+            print(json.dumps(row), flush=True)
+        if comm.allreduce(time.perf_counter() - start, op=MPI.MAX) > args.max_seconds:
+            raise OutOfTime
+
+    try:
+        tracker.track(capture, placement, pathlib.Path(args.out) / name, overwrite=True, on_frame=report,
+                      progress=False)
+    except OutOfTime:
+        if comm.rank == 0:
+            print(json.dumps(dict(variant=name, stopped=f"--max-seconds {args.max_seconds:g} used up after "
+                                  f"{len(rows)} of {args.frames} frames")), flush=True)
+
+
+def summary(rows: dict, args, comm, model, setup_seconds: float, aborted: bool = False) -> dict:
+    variants = []
+    for name, frames in rows.items():
+        warm = [r for r in frames if r["warm"]]
+        mean = (lambda key: round(float(np.mean([r[key] for r in warm])), 3)) if warm else (lambda key: None)
+        variants.append(dict(
+            variant=name, frames=len(frames), warm_frames=len(warm),
+            first_frame_s=frames[0]["seconds"] if frames else None,
+            **{f"warm_mean_{key}": mean(key) for key in ("seconds", "newton_iterations", "gn_steps",
+                                                           "factorizations", "residual_evaluations",
+                                                           "contact_seconds", "lips_seconds", "teeth_seconds",
+                                                           "rms_mm")},
+            warm_max_activation_error=max((r["activation_error"] for r in warm), default=None),
+            warm_mean_lip_pairs=mean("lip_pairs") if warm and warm[0]["lip_pairs"] is not None else None,
+            warm_mean_teeth_contact_nodes=(mean("teeth_contact_nodes")
+                                           if warm and warm[0]["teeth_contact_nodes"] is not None else None),
+            max_lip_penetration_mm=max((r["lip_penetration_mm"] for r in frames), default=None)))
+    off = {r["frame"]: r for r in rows.get("no-contact", []) if r["warm"]}
+    on = {r["frame"]: r for r in rows.get("contact", []) if r["warm"]}
+    ratios = {frame: round(on[frame]["seconds"] / off[frame]["seconds"], 2) for frame in sorted(off) if frame in on}
+    both = sorted(ratios)
+    mean_ratio = (round(sum(on[f]["seconds"] for f in both) / sum(off[f]["seconds"] for f in both), 2)
+                  if both else None)
+    return dict(summary=dict(
+        tets=model.mesh.topology.index_map(3).size_global, ranks=comm.size, take_frames=args.take_frames,
+        first_frame=args.start, frames=args.frames, max_seconds=args.max_seconds, aborted=aborted,
+        setup_seconds=round(setup_seconds, 1), variants=variants, warm_ratio_by_frame=ratios,
+        warm_ratio=mean_ratio, target_ratio=TARGET_RATIO,
+        within_target=None if mean_ratio is None else mean_ratio <= TARGET_RATIO))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tets", type=int, default=5000)
+    parser.add_argument("--frames", type=int, default=6, help="frames tracked (the first starts from rest)")
+    parser.add_argument("--take-frames", type=int, default=60,
+                        help="length of the bilabial take at 60 Hz: 60 frames put a closure into about 12")
+    parser.add_argument("--start", type=int, default=5, help="first tracked frame of the take (5: the lips closing)")
+    parser.add_argument("--noise", type=float, default=0.5, help="marker noise, RMS of the 3D error (mm)")
+    parser.add_argument("--max-seconds", type=float, default=1800.0,
+                        help="a variant starts no frame after tracking this long")
+    parser.add_argument("--abort-seconds", type=float,
+                        help="the whole run stops after this long (default: set-up + 3 x --max-seconds)")
+    parser.add_argument("--out", default="runs/contact_tracking", help="folder for the variants' fit folders")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="log every Newton solve and Gauss-Newton step to standard error (rank 0)")
+    args = parser.parse_args()
+    if not 0 <= args.start < args.start + args.frames <= args.take_frames:
+        raise SystemExit(f"--start {args.start} + --frames {args.frames} must lie within --take-frames "
+                         f"{args.take_frames}")
+    if not args.max_seconds > 0 or (args.abort_seconds is not None and not args.abort_seconds > 0):
+        raise SystemExit("--max-seconds and --abort-seconds: give positive seconds")
+
+    from face_dolfinx.alignment.placement import place_on_model
+    from face_dolfinx.capture.synthetic import synthesize_take
+    from face_dolfinx.fitting import MarkerSet
+    from face_dolfinx.model.anatomy import build_builtin_face
+    from face_dolfinx.model.folder import load_model
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.physics.self_contact import LipContactSettings
+
+    comm = MPI.COMM_WORLD
+    if args.verbose and comm.rank == 0:
+        logging.basicConfig(format="%(asctime)s %(name)s: %(message)s")
+        logging.getLogger("face_dolfinx").setLevel(logging.DEBUG)
+    began = time.perf_counter()
+    model = load_model(build_builtin_face(args.tets, comm=comm), comm)
+    names = list(model.markers)
+    sites = np.array([model.markers[name] for name in names])
+    truth_problem = FaceProblem(model, lip_contact=LipContactSettings())
+    frames = range(args.start, args.start + args.frames)
+
+    def progress(index):
+        if comm.rank == 0:
+            print(json.dumps(dict(truth_frame=args.start + index, elapsed_s=round(time.perf_counter() - began, 1))),
+                  flush=True)
+    capture, truth = synthesize_take(truth_problem, MarkerSet(truth_problem, sites, names=names), model, "bilabial",
+                                     n_frames=args.take_frames, noise=args.noise, head_motion=False, frames=frames,
+                                     progress=progress)
+    del truth_problem
+    placement = place_on_model(model, capture)
+    setup_seconds = time.perf_counter() - began
+
+    rows = {}
+    if comm.rank == 0:
+        # A frame may run for ever (a Newton crawl): past the limit, report what is done and stop.
+        limit = args.abort_seconds if args.abort_seconds is not None else setup_seconds + 3 * args.max_seconds
+
+        def abort():
+            print(json.dumps(summary(rows, args, comm, model, setup_seconds, aborted=True)), flush=True)
+            comm.Abort(2)
+        watchdog = threading.Timer(max(limit - (time.perf_counter() - began), 0.0), abort)
+        watchdog.daemon = True
+        watchdog.start()
+    for name in ("no-contact", "contact"):
+        rows[name] = []
+        track_variant(name, model, capture, placement, truth, args, comm, began, rows[name])
+    if comm.rank == 0:
+        watchdog.cancel()
+        print(json.dumps(summary(rows, args, comm, model, setup_seconds)), flush=True)
+
+
+if __name__ == "__main__":
+    main()
