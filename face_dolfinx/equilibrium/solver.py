@@ -539,13 +539,14 @@ class QuasistaticSolver:
                     x_local.array_r, step_local.array_r, GUARDED_MAX_LAMBDA) / GUARDED_MAX_LAMBDA
         if self.reuse_policy.fresh_factor:
             self._guard_cuts = self._guard_cuts + 1 if fraction < STALLED_GUARD_FRACTION else 0
+        # A step from an old factor that the guard had to cut says the factor is stale, not that
+        # Newton stalls: the next iteration refactorises instead.
+        self.reuse_policy.record_correction(correction_size, cut=fraction < 1.0)
         # The terms' bounds (a barrier's collision-free step) cut routinely while contact
-        # settles, so they do not count as the guard's stall.
+        # settles, with old and fresh factors alike: they count neither as the guard's stall nor
+        # as a stale factor (the residual's contraction judges the factor).
         for term in self.energy_terms:
             fraction = min(fraction, term.step_fraction(x, step, GUARDED_MAX_LAMBDA))
-        # A step from an old factor that had to be cut says the factor is stale, not that Newton
-        # stalls: the next iteration refactorises instead.
-        self.reuse_policy.record_correction(correction_size, cut=fraction < 1.0)
         if fraction < 1.0:
             step.scale(fraction)
             return True
