@@ -81,17 +81,8 @@ def draw_skin(points, triangles, scalars=None, markers=None, other_markers=None,
     points = np.asarray(points, dtype=float)
     triangles = np.asarray(triangles, dtype=np.int64)
     rotation = camera_rotation(view)
-    camera = points @ rotation.T
-    corners = camera[triangles]                                   # (m, 3, 3)
-    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    lengths = np.linalg.norm(normals, axis=1)
-    keep = lengths > 0
-    corners, triangles = corners[keep], triangles[keep]
-    flat = normals[keep] / lengths[keep, None]
-    normals = _smoothed_normals(triangles, normals[keep], len(points))
-    light = LIGHT / np.linalg.norm(LIGHT)
-    brightness = ((AMBIENT + (1.0 - AMBIENT) * np.abs(normals @ light))
-                  * np.abs(normals[:, 2]) ** FACING_POWER)
+    corners, keep, flat, brightness = _lit_triangles(points, triangles, rotation)
+    triangles = triangles[keep]
     brightness[_opening_walls(triangles, flat)] *= CAVITY_SHADE
 
     if scalars is None:
@@ -104,9 +95,9 @@ def draw_skin(points, triangles, scalars=None, markers=None, other_markers=None,
     colours = np.clip(base * brightness[:, None], 0.0, 1.0)
     skin_corners = corners
     for object_points, object_triangles in objects:
-        object_corners, object_colours = _shaded_object(object_points, object_triangles, rotation, light)
+        object_corners, _, _, object_brightness = _lit_triangles(object_points, object_triangles, rotation)
         corners = np.concatenate([corners, object_corners])
-        colours = np.concatenate([colours, object_colours])
+        colours = np.concatenate([colours, np.clip(OBJECT_COLOUR * object_brightness[:, None], 0.0, 1.0)])
 
     order = np.argsort(corners[:, :, 2].mean(axis=1))             # far first
     figure, axes = plt.subplots(figsize=size, dpi=dpi)
@@ -153,18 +144,20 @@ def view_box(camera_xy: np.ndarray, margin: float = 0.04) -> tuple[tuple[float, 
     return (low[0] - pad, high[0] + pad), (low[1] - pad, high[1] + pad)
 
 
-def _shaded_object(points, triangles, rotation: np.ndarray, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-space corners (l, 3, 3) and colours (l, 3) of a rigid object's triangles, lit like
-    the skin."""
+def _lit_triangles(points, triangles, rotation: np.ndarray):
+    """A surface in camera space, lit: the corners (l, 3, 3) of its triangles of nonzero area,
+    which ones those are (a mask of ``triangles``), their unit normals and their brightness."""
     camera = np.asarray(points, dtype=float) @ rotation.T
     triangles = np.asarray(triangles, dtype=np.int64)
     corners = camera[triangles]
     normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    keep = np.linalg.norm(normals, axis=1) > 0
-    normals = _smoothed_normals(triangles[keep], normals[keep], len(camera))
-    brightness = ((AMBIENT + (1.0 - AMBIENT) * np.abs(normals @ light))
-                  * np.abs(normals[:, 2]) ** FACING_POWER)
-    return corners[keep], np.clip(OBJECT_COLOUR * brightness[:, None], 0.0, 1.0)
+    lengths = np.linalg.norm(normals, axis=1)
+    keep = lengths > 0
+    smooth = _smoothed_normals(triangles[keep], normals[keep], len(camera))
+    light = LIGHT / np.linalg.norm(LIGHT)
+    brightness = ((AMBIENT + (1.0 - AMBIENT) * np.abs(smooth @ light))
+                  * np.abs(smooth[:, 2]) ** FACING_POWER)
+    return corners[keep], keep, normals[keep] / lengths[keep, None], brightness
 
 
 def _smoothed_normals(triangles: np.ndarray, area_normals: np.ndarray, num_points: int):
