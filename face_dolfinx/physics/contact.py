@@ -341,6 +341,7 @@ class ContactPotential:
             raise ValueError(f"{settings.where}: the contact surface {settings.surface!r} has no facets")
         self.poses = settings.rest_poses()
         self.ignored = np.zeros(self.surface.num_nodes, dtype=bool)
+        self._last_terms = None  # (positions, poses, ignored, terms) of the last ``_terms``
         if len(self.poses) != len(self.objects):
             raise ValueError(f"{settings.where}: {len(self.objects)} objects but {len(self.poses)} poses")
 
@@ -397,27 +398,40 @@ class ContactPotential:
         return int((self.gaps(displacement) < self.dhat).sum())
 
     # -- the solver's energy-term interface ---------------------------------------------------
-    def _terms(self, displacement: np.ndarray):
-        """Per object: active nodes, gaps, normals, and the gaps' curvatures (a scalar c per node,
-        d2g/dx2 = c (I - n n^T), or the 3 x 3 matrices d2g/dx2)."""
+    def _terms(self, displacement: np.ndarray) -> list:
+        """Per object: active nodes, their positions, gaps, normals and gap Hessians (3 x 3
+        d2g/dx2). The gradient, the Hessian, Newton's correction and the pose rates of one state
+        share them: the same positions, poses and ignored nodes as the last call's reuse its
+        result."""
         x = self.positions(displacement)
+        last = self._last_terms
+        if last is not None and last[1] is self.poses and last[2] is self.ignored and np.array_equal(last[0], x):
+            return last[3]
+        terms = []
         for obj, pose in zip(self.objects, self.poses):
             # Nodes surely beyond dhat get a lower bound of their gap (>= dhat): inactive either way.
             gap, normal, curvature = obj.gaps(x, pose, within=self.dhat)
             active = np.flatnonzero((gap < self.dhat) & ~self.ignored)
-            yield active, gap[active], normal[active], curvature[active]
+            normal, curvature = normal[active], curvature[active]
+            # d2g/dx2 = c (I - n n^T) for a sphere (a scalar curvature c per node), given whole by
+            # a triangle mesh.
+            gap_hessian = (curvature if curvature.ndim == 3 else
+                           curvature[:, None, None] * (np.eye(3) - normal[:, :, None] * normal[:, None, :]))
+            terms.append((active, x[active], gap[active], normal, gap_hessian))
+        self._last_terms = (x, self.poses, self.ignored, terms)
+        return terms
 
     def energy(self, x: PETSc.Vec) -> float:
         """E_c at the displacement ``x`` (the same on every rank; inf if a node is inside)."""
         scale = self.stiffness / self.dhat
         return float(sum(scale * (self.surface.areas[active] * barrier(gap, self.dhat)).sum()
-                         for active, gap, _, _ in self._terms(x.array_r)))
+                         for active, _, gap, _, _ in self._terms(x.array_r)))
 
     def nodal_forces(self, displacement: np.ndarray) -> np.ndarray:
         """(nodes, 3) dE_c/dx at every contact node (the force on the objects; NaN if inside)."""
         gradient = np.zeros((self.surface.num_nodes, 3))
         scale = self.stiffness / self.dhat
-        for active, gap, normal, _ in self._terms(displacement):
+        for active, _, gap, normal, _ in self._terms(displacement):
             first, _ = barrier_derivatives(gap, self.dhat)
             np.add.at(gradient, active, (scale * self.surface.areas[active] * first)[:, None] * normal)
         return gradient
@@ -457,14 +471,10 @@ class ContactPotential:
         """(nodes, 3, 3): d2E_c/dx2 of every contact node (the same on every rank)."""
         blocks = np.zeros((self.surface.num_nodes, 3, 3))
         scale = self.stiffness / self.dhat
-        identity = np.eye(3)
-        for active, gap, normal, curvature in self._terms(x.array_r):
+        for active, _, gap, normal, gap_hessian in self._terms(x.array_r):
             first, second = barrier_derivatives(gap, self.dhat)
-            nn = normal[:, :, None] * normal[:, None, :]
-            # d2b/dx2 = b'' n n^T + b' d2g/dx2, with d2g/dx2 = (I - n n^T) / |x - c| for a sphere
-            # (a scalar curvature per node) or given whole (a triangle mesh).
-            gap_hessian = curvature if curvature.ndim == 3 else curvature[:, None, None] * (identity - nn)
-            local = second[:, None, None] * nn + first[:, None, None] * gap_hessian
+            # d2b/dx2 = b'' n n^T + b' d2g/dx2
+            local = second[:, None, None] * normal[:, :, None] * normal[:, None, :] + first[:, None, None] * gap_hessian
             np.add.at(blocks, active, scale * self.surface.areas[active][:, None, None] * local)
         return blocks
 
@@ -600,11 +610,11 @@ class ContactPotential:
         at dg = -n . v and its unit normal at dn = W n - H v (H the gap's world Hessian), so the
         nodal gradient s A b'(g) n (s = stiffness / dhat, A the node's area) changes at
         s A [b''(g) dg n + b'(g) dn]. Refuses a pose or a rate that is not rigid."""
-        x = self.positions(displacement)
         out = np.zeros((self.surface.num_nodes, 3))
         scale = self.stiffness / self.dhat
         identity = np.eye(3)
-        for obj, pose, rate in zip(self.objects, self.poses, rates):
+        for obj, pose, rate, (active, x, gap, n, gap_hessian) in zip(self.objects, self.poses, rates,
+                                                                     self._terms(displacement)):
             if rate is None:
                 continue
             dM, dt = np.asarray(rate[0], dtype=float).reshape(3, 3), np.asarray(rate[1], dtype=float).reshape(3)
@@ -614,14 +624,8 @@ class ContactPotential:
             if np.abs(M.T @ M - identity).max() > 1e-8 or np.abs(W + W.T).max() > 1e-6 * size:
                 raise ValueError(f"{self.settings.where}: the {obj.describe()} moves non-rigidly (an affine "
                                  "bone frame): the contact's derivative in its pose needs rigid frames")
-            gap, normal, curvature = obj.gaps(x, pose, within=self.dhat)
-            active = np.flatnonzero((gap < self.dhat) & ~self.ignored)
-            n = normal[active]
-            v = (x[active] - pose.translation) @ W.T + dt
-            first, second = barrier_derivatives(gap[active], self.dhat)
-            curvature = curvature[active]
-            gap_hessian = (curvature if curvature.ndim == 3
-                           else curvature[:, None, None] * (identity - n[:, :, None] * n[:, None, :]))
+            v = (x - pose.translation) @ W.T + dt
+            first, second = barrier_derivatives(gap, self.dhat)
             gap_rate = -np.einsum("ij,ij->i", n, v)
             normal_rate = n @ W.T - np.einsum("kij,kj->ki", gap_hessian, v)
             np.add.at(out, active, (scale * self.surface.areas[active])[:, None]
