@@ -1113,6 +1113,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--line-search-iterations", type=int, metavar="N",
                    help="secant iterations of Newton's line search (default 1; 3 cut the slowest "
                         "frames at 404K tets, where the lips move fast, from 94 to 21 s)")
+    p.add_argument("--krylov", action="store_true", default=None,
+                   help="with --reuse-factorization: solve each Newton correction by GMRES preconditioned "
+                        "by the old factor instead of refactorising when Newton slows (fewer factorisations, "
+                        "more residuals and solves; see docs/performance.md, \"Contact in tracking\")")
     p.add_argument("--contact", action="store_true", default=None,
                    help="contact in every equilibrium, as simulate --contact: the upper and lower lip press on "
                         "each other instead of passing through, and the lining of the lips and cheeks rests on "

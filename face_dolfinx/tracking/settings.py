@@ -38,6 +38,7 @@ RECORD_FIELDS = {
     "newton_tolerance": ("solver", "newton_tolerance"),
     "refresh_contraction": ("solver", "refresh_contraction"),
     "line_search_iterations": ("solver", "line_search_iterations"),
+    "krylov": ("solver", "krylov_on_old_factor"),
     "contact": ("solver", "contact"),
 }
 
@@ -58,6 +59,9 @@ class TrackingSettings:
     refresh_contraction: float = REFRESH_CONTRACTION
     newton_tolerance: float = 1e-8  # mm: Newton stops once no node moves further in a correction
     line_search_iterations: int = 1
+    # With reuse_factorization: Newton corrections by GMRES preconditioned by the old factor, which
+    # then lasts a whole warm frame with contact (docs/performance.md, "Contact in tracking").
+    krylov_on_old_factor: bool = False
     # The lips press on each other instead of passing (physics/self_contact.py) and the lining of
     # the lips and cheeks rests on the model's teeth (physics/contact.py): ``contact_surfaces``.
     contact: bool = False
@@ -76,6 +80,8 @@ class TrackingSettings:
             ("newton_tolerance", self.newton_tolerance > 0, "give a positive distance in mm"),
             ("refresh_contraction", 0 < self.refresh_contraction < 1, "give a factor between 0 and 1"),
             ("line_search_iterations", self.line_search_iterations >= 1, "give 1 or more"),
+            ("krylov", self.reuse_factorization or not self.krylov_on_old_factor,
+             "Krylov on the old factor needs reuse_factorization (a factor kept across iterations)"),
             ("contact", not (self.contact and self.fit.mode == "paper" and (self.fit.fit_head or self.fit.fit_jaw)),
              "the teeth move with the exact mode's rigid bone frames, not the paper mode's affine ones: "
              "fit with contact in exact mode"),
