@@ -15,7 +15,10 @@ OTHER_VALUES = dict(mode=("paper", "paper"), gn_steps=("5", 5), smoothness=("0.5
                     intraoral_pressure=(None, True), pressure_limit=("50", 50.0),
                     fresh_jacobians=("2", 2), approximate_jacobians=("0.1", 0.1),
                     reuse_factorization=(None, True), newton_tolerance=("1e-3", 1e-3),
-                    refresh_contraction=("0.3", 0.3), line_search_iterations=("2", 2), contact=(None, True))
+                    refresh_contraction=("0.3", 0.3), line_search_iterations=("2", 2), contact=(None, True),
+                    krylov=(None, True))
+# Settings that need another one changed with them.
+NEEDS = dict(krylov=("reuse_factorization", "--reuse-factorization"))
 
 
 def test_every_setting_is_a_fit_option_of_the_same_name():
@@ -24,10 +27,22 @@ def test_every_setting_is_a_fit_option_of_the_same_name():
     for key, (text, value) in OTHER_VALUES.items():
         assert default.value(key) != value
         option = [f"--{key.replace('_', '-')}"] + ([text] if text is not None else [])
+        changed = {key}
+        if key in NEEDS:
+            changed.add(NEEDS[key][0])
+            option.append(NEEDS[key][1])
         settings = tracking_settings(parse_arguments(["fit", "take.trc", *option])[0])
         assert settings.value(key) == value
-        assert {k: v for k, v in settings.record().items() if k != key} == \
-            {k: v for k, v in default.record().items() if k != key}
+        assert {k: v for k, v in settings.record().items() if k not in changed} == \
+            {k: v for k, v in default.record().items() if k not in changed}
+
+
+def test_krylov_without_a_kept_factor_is_refused():
+    with pytest.raises(SettingError, match="needs reuse_factorization"):
+        PRESETS["default"].updated(dict(krylov=True))
+    with pytest.raises(SystemExit, match="--krylov True: Krylov on the old factor needs reuse_factorization"):
+        tracking_settings(parse_arguments(["fit", "take.trc", "--krylov"])[0])
+    assert PRESETS["fast"].updated(dict(krylov=True)).problem_options()["krylov_on_old_factor"]
 
 
 def test_default_preset_is_the_library_default_and_fast_differs_where_documented():
@@ -37,7 +52,7 @@ def test_default_preset_is_the_library_default_and_fast_differs_where_documented
     assert changed == {"gn_steps", "fresh_jacobians", "approximate_jacobians", "reuse_factorization",
                        "newton_tolerance", "refresh_contraction", "line_search_iterations"}
     assert fast.problem_options() == dict(reuse_factorization=True, refresh_contraction=0.5,
-                                          newton_tolerance=1e-2, line_search_iterations=3,
+                                          newton_tolerance=1e-2, line_search_iterations=3, krylov_on_old_factor=False,
                                           intraoral_pressure=False, lip_contact=None, contact=None)
 
 
