@@ -235,7 +235,8 @@ class ContactSettings:
     pressure at g = dhat / 2), and the tagged boundary ``surface`` that touches them. With
     ``teeth``, the model's teeth (``FaceModel.teeth``, each moving with its bone frame) touch the
     facets tagged ``teeth_surface`` (the lining of the lips and cheeks) with the same stiffness and
-    their own activation distance ``teeth_dhat`` (mm)."""
+    their own activation distance ``teeth_dhat`` (mm). With ``faces`` the spheres keep the
+    surface's triangles out, not only its nodes (``face_contact.FaceContactPotential``)."""
 
     objects: tuple = ()
     poses: tuple = ()
@@ -246,6 +247,7 @@ class ContactSettings:
     teeth: bool = False
     teeth_surface: str = "oral"
     teeth_dhat: float = TEETH_DHAT
+    faces: bool = True
 
     def rest_poses(self) -> tuple:
         return tuple(self.poses) if self.poses else tuple(AffineMap() for _ in self.objects)
@@ -341,6 +343,7 @@ class ContactPotential:
             raise ValueError(f"{settings.where}: the contact surface {settings.surface!r} has no facets")
         self.poses = settings.rest_poses()
         self.ignored = np.zeros(self.surface.num_nodes, dtype=bool)
+        self.node_barrier = tuple(True for _ in self.objects)  # per object: its barrier acts on the nodes
         self._last_terms = None  # (positions, poses, ignored, terms) of the last ``_terms``
         if len(self.poses) != len(self.objects):
             raise ValueError(f"{settings.where}: {len(self.objects)} objects but {len(self.poses)} poses")
@@ -408,7 +411,10 @@ class ContactPotential:
         if last is not None and last[1] is self.poses and last[2] is self.ignored and np.array_equal(last[0], x):
             return last[3]
         terms = []
-        for obj, pose in zip(self.objects, self.poses):
+        for obj, pose, by_nodes in zip(self.objects, self.poses, self.node_barrier):
+            if not by_nodes:  # a subclass's barrier takes the object
+                terms.append((np.zeros(0, dtype=int), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3))))
+                continue
             # Nodes surely beyond dhat get a lower bound of their gap (>= dhat): inactive either way.
             gap, normal, curvature = obj.gaps(x, pose, within=self.dhat)
             active = np.flatnonzero((gap < self.dhat) & ~self.ignored)

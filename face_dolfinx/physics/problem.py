@@ -46,6 +46,7 @@ from face_dolfinx.model.regions import material_fields
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
 from face_dolfinx.physics.contact import CARRY_REACH, CCD_KEEP, PUSH_GAP, ContactPotential, ContactSettings
+from face_dolfinx.physics.face_contact import contact_potential
 from face_dolfinx.physics.self_contact import LIP_NEWTON_ITERATIONS, LipContact, LipContactSettings, lip_facets
 from face_dolfinx.physics.material import FaceMaterial, FiberSlot
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
@@ -271,7 +272,7 @@ class FaceProblem:
         if contact is not None and (contact.objects or not contact.teeth):
             tag = self._surface_tag(contact.surface, f"{contact.where}: model {model.path} has no facets tagged "
                                                      f"{contact.surface!r} to touch the objects")
-            self.contact = ContactPotential(self.V, model.facet_tags.find(tag), contact)
+            self.contact = contact_potential(self.V, model.facet_tags.find(tag), contact)
         if self.contact is not None:
             self.contact.check_clear(self.u.x.array)
         self.teeth_bones = tuple(model.teeth) if contact is not None and contact.teeth else ()
