@@ -260,9 +260,9 @@ class FaceContactPotential(ContactPotential):
     # -- moving the objects ------------------------------------------------------------------
     def push_out(self, displacement: np.ndarray, poses) -> tuple[np.ndarray, np.ndarray]:
         """The nodal push-out, then the corners of every triangle that a sphere at its new pose
-        would leave closer than PUSH_GAP * dhat moved radially out by the triangle's shortfall,
-        round after round (PUSH_ROUNDS) until no triangle is that close; the moved nodes join the
-        held ones."""
+        would leave closer than PUSH_GAP * dhat moved radially out by the triangle's shortfall to
+        twice that, round after round (PUSH_ROUNDS) until no triangle is that close; the moved
+        nodes join the held ones."""
         out, held = super().push_out(displacement, poses)
         x = self.positions(out)
         moved = np.zeros(len(x), dtype=bool)
@@ -279,7 +279,8 @@ class FaceContactPotential(ContactPotential):
                 if not close.any():
                     break
                 shortfall = np.zeros(len(x))
-                np.maximum.at(shortfall, triangles[close], (target - gap[close])[:, None])
+                # Aimed at twice the target: a triangle's gap approaches the aim only geometrically.
+                np.maximum.at(shortfall, triangles[close], (2.0 * target - gap[close])[:, None])
                 nodes = np.flatnonzero(shortfall > 0.0)
                 radial = x[nodes] - centre
                 x[nodes] += (shortfall[nodes] / np.linalg.norm(radial, axis=1))[:, None] * radial
