@@ -49,6 +49,12 @@ from face_dolfinx.physics.contact import (CCD_KEEP, PUSH_GAP, ROUND_OFF, Contact
 # conservative rescaling (0.9 of the time of impact) comes on top of the CCD_KEEP clearance.
 NARROW_PHASE = ipctk.AdditiveCCD()
 
+# Newton iterations a solve with the triangle barrier may take before continuation takes over: a
+# sphere pressed 1 mm further into the 5K face's smiling cheek settles in 21-41 (collision-limited
+# steps while the triangles close from dhat to their contact gap, then Newton's convergence); with
+# PETSc's 25 a failed Newton solve and continuation made 86-152 of them.
+FACE_NEWTON_ITERATIONS = 60
+
 # Rounds of ``push_out``'s radial push of the triangles that a sphere's new pose would overlap.
 PUSH_ROUNDS = 50
 

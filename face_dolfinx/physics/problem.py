@@ -46,7 +46,7 @@ from face_dolfinx.model.regions import material_fields
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
 from face_dolfinx.physics.contact import CARRY_REACH, CCD_KEEP, PUSH_GAP, ContactPotential, ContactSettings
-from face_dolfinx.physics.face_contact import contact_potential
+from face_dolfinx.physics.face_contact import FACE_NEWTON_ITERATIONS, FaceContactPotential, contact_potential
 from face_dolfinx.physics.self_contact import LIP_NEWTON_ITERATIONS, LipContact, LipContactSettings, lip_facets
 from face_dolfinx.physics.material import FaceMaterial, FiberSlot
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
@@ -284,6 +284,8 @@ class FaceProblem:
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
         # closed by the orbicularis oris at 1): Newton is given room before continuation.
         lip_newton = {"snes_max_it": LIP_NEWTON_ITERATIONS} if self.lips is not None else {}
+        if self.lips is None and isinstance(self.contact, FaceContactPotential):
+            lip_newton = {"snes_max_it": FACE_NEWTON_ITERATIONS}  # likewise the triangles on a sphere
         # The time integrator adds inertia and damping to the residual, with its test function.
         self._residual, self._test_function = residual, v
         self._tangent_structure = "general" if intraoral_pressure else "spd"
