@@ -13,10 +13,11 @@ of the contact code); the contact nodes and triangles (within dhat) and the forc
 By default the barrier keeps the skin's triangles out of the sphere
 (``face_contact.FaceContactPotential``); ``--nodes`` keeps only the nodes out (a flat triangle
 between them can then dip in). At the deepest pose: the contact pressure per skin node (kPa), two
-ways: the nodal barrier force over the node's area, and (triangle barrier) the triangles'
-pressures averaged over the triangles around the node (``face_pressure``); the plotted one
-(``--plot``: a map over the contact patch and a profile against the distance from the sphere's
-axis) is the latter where there is one. For each: the scatter about the best fitting Hertz
+ways: the nodal barrier force over the node's area, (triangle barrier) the triangles' pressures
+averaged over the triangles around the node (``face_pressure``), and the nodal forces and areas
+summed with hat weights over one median skin edge (``smoothed_pressure``: the pressure the mesh
+resolves), the one plotted (``--plot``: a map over the contact patch and a profile against the
+distance from the sphere's axis). For each: the scatter about the best fitting Hertz
 profile and the count of isolated spikes (a pressed node with more than twice the pressure of
 every neighbour); ``--render``: a picture of the face with the sphere.
 
@@ -43,7 +44,7 @@ from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
 from face_dolfinx.model.bones import AffineMap, jaw_pose  # noqa: E402
 from face_dolfinx.model.folder import load_model  # noqa: E402
 from face_dolfinx.physics.contact import ContactSettings, Sphere  # noqa: E402
-from face_dolfinx.physics.face_contact import FaceContactPotential  # noqa: E402
+from face_dolfinx.physics.face_contact import FaceContactPotential, smoothed_pressure  # noqa: E402
 from face_dolfinx.physics.problem import FaceProblem  # noqa: E402
 from face_dolfinx.results.render import render_skin  # noqa: E402
 from face_dolfinx.results.xdmf import displacement_at  # noqa: E402
@@ -217,7 +218,8 @@ def main():
     problem.solver.snes.cancelMonitor()
 
     # Pressure per skin node at the deepest pose: the barrier's nodal force over the node's area,
-    # and the triangles' pressures averaged around the node (plotted where there is one).
+    # the triangles' pressures averaged around the node, and the nodal forces and areas summed
+    # with hat weights over one median skin edge (plotted).
     u = problem.u.x.array
     x = contact.positions(u)
     centre = contact.poses[0].translation
@@ -229,9 +231,12 @@ def main():
     if faces:
         pressure = contact.face_pressure(u)
         summary.update(triangle_average=pressure_statistics(contact.surface.triangles, pressure, off_axis))
+    filtered = smoothed_pressure(x, contact.nodal_forces(u), contact.surface.areas, median_edge)
+    summary.update(filtered_at_one_edge=pressure_statistics(contact.surface.triangles, filtered, off_axis))
+    pressure = filtered
     pressed = pressure > 0.0
-    summary.update(plotted_pressure="triangle_average" if faces else "nodal_force_over_area",
-                   **summary["triangle_average" if faces else "nodal_force_over_area"],
+    summary.update(plotted_pressure="filtered_at_one_edge",
+                   **summary["filtered_at_one_edge"],
                    pressure_kPa_by_distance_from_axis_mm=[[round(float(r), 3), round(float(p), 3)] for r, p in
                                                           sorted(zip(off_axis[pressed], pressure[pressed]))],
                    total_seconds=round(time.perf_counter() - began, 2))
@@ -248,7 +253,8 @@ def main():
             record(args.render, tets=args.tets, ranks=comm.size)
     if comm.rank == 0:
         print(json.dumps({k: v for k, v in summary.items() if k not in ("poses", "pressure_kPa_by_distance_from_axis_mm",
-                                                                        "nodal_force_over_area", "triangle_average")}),
+                                                                        "nodal_force_over_area", "triangle_average",
+                                                                        "filtered_at_one_edge")}),
               flush=True)
         out.write_text(json.dumps(summary, indent=1) + "\n")
         record(out, tets=args.tets, ranks=comm.size)
