@@ -280,12 +280,13 @@ def pressure_statistics(triangles: np.ndarray, pressure: np.ndarray, off_axis: n
 
 
 def hertz_profile(radii: np.ndarray, pressures: np.ndarray) -> dict:
-    """The least-squares fit p0 sqrt(1 - (r / a)^2) of the pressed nodes' pressures against their
-    distance r from the sphere's axis (Hertz's profile; a over a grid from the outermost pressed
-    node to twice it, p0 in closed form), and the pressures' RMS scatter about it relative to p0:
-    a smooth pressure lies close to one such profile, node-to-node noise does not."""
+    """The least-squares fit p0 sqrt(1 - (r / a)^2) (0 beyond a) of the pressed nodes' pressures
+    against their distance r from the sphere's axis (Hertz's profile; a over a grid from 0.3 to 2
+    times the outermost pressed node's r, p0 in closed form), and the pressures' RMS scatter about
+    it relative to p0: a smooth pressure lies close to one such profile, node-to-node noise does
+    not. (A field with a faint rim, as a filtered one has, fits an a inside its outermost node.)"""
     best = None
-    for a in np.linspace(1.0, 2.0, 101) * radii.max():
+    for a in np.linspace(0.3, 2.0, 171) * radii.max():
         shape = np.sqrt(np.clip(1.0 - (radii / a) ** 2, 0.0, None))
         p0 = float(shape @ pressures / (shape @ shape))
         rms = float(np.sqrt(np.mean((pressures - p0 * shape) ** 2)))
