@@ -288,6 +288,8 @@ def hertz_profile(radii: np.ndarray, pressures: np.ndarray) -> dict:
     best = None
     for a in np.linspace(0.3, 2.0, 171) * radii.max():
         shape = np.sqrt(np.clip(1.0 - (radii / a) ** 2, 0.0, None))
+        if not shape.any():  # a inside every pressed node
+            continue
         p0 = float(shape @ pressures / (shape @ shape))
         rms = float(np.sqrt(np.mean((pressures - p0 * shape) ** 2)))
         if best is None or rms < best["rms_kPa"]:
