@@ -4,7 +4,9 @@ An object (``Sphere``, ``HalfSpace``) is rigid and moves as prescribed: its pose
 from its own frame to the world like the bone frames, is a control set before each solve (a
 trajectory is a sequence of poses), so moving it recompiles nothing. The contact surface is a
 tagged set of boundary facets (the skin of the face). Every node of it (vertices, and for P2 the
-edge midpoints: each P2 triangle is split into four flat ones) keeps a gap g > 0 to every object.
+edge midpoints: each P2 triangle is split into four flat ones) keeps a gap g > 0 to every object;
+against a sphere, every flat triangle does (``face_contact.FaceContactPotential``, the default
+through ``ContactSettings.faces``).
 
 The energy is the incremental potential contact barrier of Li et al. (2020), the IPC Toolkit's
 ``ipctk.barrier`` b(g) = -(g - dhat)^2 ln(g / dhat) for g < dhat and 0 beyond, weighted by each

@@ -7,7 +7,8 @@ intraoral pressure) live in DG0 functions, a ``fem.Constant`` and the Dirichlet 
 them never recompiles a form.
 
 Rigid kinematic objects (``contact``, ``face_dolfinx.physics.contact``: a sphere, a half-space)
-press on a tagged surface (the skin) through a barrier energy the solver adds to the flesh's; their
+press on a tagged surface (the skin) through a barrier energy the solver adds to the flesh's (a
+sphere on the surface's triangles, ``face_dolfinx.physics.face_contact``, the others on its nodes); their
 poses are controls (``Controls.objects``), each solve pushes the surface out of an object's new pose
 before Newton (the barrier needs a start that overlaps nothing), and the continuation fallback walks
 the poses like the other controls. With ``ContactSettings(teeth=True)`` the model's teeth (closed
