@@ -226,13 +226,13 @@ def main():
     axial = (x - centre) @ normal
     off_axis = np.linalg.norm((x - centre) - axial[:, None] * normal, axis=1)
     force_over_area = np.linalg.norm(contact.nodal_forces(u), axis=1) / contact.surface.areas
-    summary.update(nodal_force_over_area=pressure_statistics(contact.surface.triangles, force_over_area, off_axis))
+    summary.update(nodal_force_over_area=pressure_statistics(contact.surface.triangles, force_over_area, off_axis, x, normal))
     pressure = force_over_area
     if faces:
         pressure = contact.face_pressure(u)
-        summary.update(triangle_average=pressure_statistics(contact.surface.triangles, pressure, off_axis))
+        summary.update(triangle_average=pressure_statistics(contact.surface.triangles, pressure, off_axis, x, normal))
     filtered = smoothed_pressure(x, contact.nodal_forces(u), contact.surface.areas, median_edge)
-    summary.update(filtered_at_one_edge=pressure_statistics(contact.surface.triangles, filtered, off_axis))
+    summary.update(filtered_at_one_edge=pressure_statistics(contact.surface.triangles, filtered, off_axis, x, normal))
     pressure = filtered
     pressed = pressure > 0.0
     summary.update(plotted_pressure="filtered_at_one_edge",
@@ -263,20 +263,29 @@ def main():
             record(args.plot, tets=args.tets, ranks=comm.size)
 
 
-def pressure_statistics(triangles: np.ndarray, pressure: np.ndarray, off_axis: np.ndarray) -> dict:
+def pressure_statistics(triangles: np.ndarray, pressure: np.ndarray, off_axis: np.ndarray, x: np.ndarray,
+                        normal: np.ndarray) -> dict:
     """Pressed nodes, peak and median pressure, the patch radius, isolated spikes (a pressed node
-    with more than twice the pressure of every neighbour) and the fit of Hertz's profile."""
+    with more than twice the pressure of every neighbour) and the fit of Hertz's profile against
+    the distance from the sphere's axis and, as well, from the line along the path through the
+    centre of pressure (the pressure-weighted mean of the nodes): on the curved cheek the patch
+    need not be centred on the sphere's path."""
     edges = np.unique(np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]),
                               axis=1), axis=0)
     neighbour_peak = np.zeros(len(pressure))
     np.maximum.at(neighbour_peak, edges[:, 0], pressure[edges[:, 1]])
     np.maximum.at(neighbour_peak, edges[:, 1], pressure[edges[:, 0]])
     pressed = pressure > 0.0
+    centre = pressure @ x / max(pressure.sum(), 1e-300)
+    offset = x - centre
+    off_centre = np.linalg.norm(offset - (offset @ normal)[:, None] * normal, axis=1)
     return dict(pressed_nodes=int(pressed.sum()), peak_pressure_kPa=float(pressure.max()),
                 median_pressure_of_pressed_nodes_kPa=float(np.median(pressure[pressed])) if pressed.any() else 0.0,
                 contact_patch_radius_mm=float(off_axis[pressed].max()) if pressed.any() else 0.0,
                 isolated_spikes=int((pressed & (pressure > 2.0 * neighbour_peak)).sum()),
-                hertz_fit=hertz_profile(off_axis[pressed], pressure[pressed]) if pressed.sum() >= 2 else None)
+                hertz_fit=hertz_profile(off_axis[pressed], pressure[pressed]) if pressed.sum() >= 2 else None,
+                hertz_fit_about_centre_of_pressure=(hertz_profile(off_centre[pressed], pressure[pressed])
+                                                    if pressed.sum() >= 2 else None))
 
 
 def hertz_profile(radii: np.ndarray, pressures: np.ndarray) -> dict:
