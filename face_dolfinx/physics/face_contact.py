@@ -258,10 +258,14 @@ class FaceContactPotential(ContactPotential):
         super().check_clear(displacement, margin)
         spheres = [(obj, pose) for obj, pose, faces in zip(self.objects, self.poses, self.by_faces) if faces]
         for (obj, pose), gap in zip(spheres, self.triangle_gaps(displacement)):
-            if gap.min(initial=np.inf) <= margin:
+            if gap.min(initial=np.inf) <= 0.0:
                 raise ValueError(f"{self.settings.where}: the {obj.describe()} at {pose.translation.round(3).tolist()} "
-                                 f"cuts {int((gap <= margin).sum())} triangles of the {self.settings.surface} "
+                                 f"cuts {int((gap <= 0.0).sum())} triangles of the {self.settings.surface} "
                                  f"(deepest {-gap.min():.3g} mm inside) though no node is inside: place it outside")
+            if gap.min(initial=np.inf) <= margin:
+                raise ValueError(f"{self.settings.where}: the {obj.describe()} comes within {gap.min():.3g} mm of "
+                                 f"{int((gap <= margin).sum())} triangles of the {self.settings.surface} at rest; it "
+                                 f"must leave more than {margin:g} mm")
 
     # -- moving the objects ------------------------------------------------------------------
     def push_out(self, displacement: np.ndarray, poses) -> tuple[np.ndarray, np.ndarray]:
