@@ -8,12 +8,18 @@ moves along the cheek's outward normal (at the marker site ``--site`` of the smi
 iterations, load steps, failed Newton solves (continuation took over), seconds; the smallest gap
 of any skin node to the sphere over all Newton iterates (the held solve that moves the sphere
 included) and where that node is; the deepest point of any skin triangle inside the sphere at
-the equilibrium and over all iterates (the barrier keeps the *nodes* out, a flat triangle
-between them can still dip in); the contact nodes and the force on the sphere. At the deepest
-pose: the contact pressure per skin node (kPa), plotted as a map over the contact patch and as
-a profile against the distance from the sphere's axis (``--plot``), the pressures' scatter about
-the best fitting Hertz profile, and the count of isolated spikes (a pressed node with more than
-twice the pressure of every neighbour); ``--render``: a picture of the face with the sphere.
+the equilibrium and over all iterates (measured here from the triangles' corners, independently
+of the contact code); the contact nodes and triangles (within dhat) and the force on the sphere.
+By default the barrier keeps the skin's triangles out of the sphere
+(``face_contact.FaceContactPotential``); ``--nodes`` keeps only the nodes out (a flat triangle
+between them can then dip in). At the deepest pose: the contact pressure per skin node (kPa), two
+ways: the nodal barrier force over the node's area, (triangle barrier) the triangles' pressures
+averaged over the triangles around the node (``face_pressure``), and the nodal forces and areas
+summed with hat weights over one median skin edge (``smoothed_pressure``: the pressure the mesh
+resolves), the one plotted (``--plot``: a map over the contact patch and a profile against the
+distance from the sphere's axis). For each: the scatter about the best fitting Hertz
+profile and the count of isolated spikes (a pressed node with more than twice the pressure of
+every neighbour); ``--render``: a picture of the face with the sphere.
 
 Rows are printed and written (``--out``, JSON) after every pose, so a long run keeps what it
 measured; ``--max-poses`` stops after that many poses (404K tets on 2 ranks: a pose is minutes).
@@ -38,6 +44,7 @@ from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
 from face_dolfinx.model.bones import AffineMap, jaw_pose  # noqa: E402
 from face_dolfinx.model.folder import load_model  # noqa: E402
 from face_dolfinx.physics.contact import ContactSettings, Sphere  # noqa: E402
+from face_dolfinx.physics.face_contact import FaceContactPotential, smoothed_pressure  # noqa: E402
 from face_dolfinx.physics.problem import FaceProblem  # noqa: E402
 from face_dolfinx.results.render import render_skin  # noqa: E402
 from face_dolfinx.results.xdmf import displacement_at  # noqa: E402
@@ -122,6 +129,8 @@ def main():
     parser.add_argument("--degree", type=int, default=1, help="the displacement's polynomial degree (1 or 2)")
     parser.add_argument("--dhat", type=float, default=0.05)
     parser.add_argument("--stiffness", type=float, default=10.0)
+    parser.add_argument("--nodes", action="store_true", help="keep only the skin's nodes out of the sphere, not its "
+                                                             "triangles")
     parser.add_argument("--max-poses", type=int, default=None, help="stop after this many poses")
     parser.add_argument("--out", required=True)
     parser.add_argument("--plot")
@@ -142,7 +151,8 @@ def main():
     rest_site, rest_normal = cheek_frame(model, args.site)
     waiting = AffineMap(np.eye(3), rest_site + (radius + WAITING_CLEARANCE) * rest_normal)
     began = time.perf_counter()
-    settings = ContactSettings((Sphere(radius),), (waiting,), dhat=args.dhat, stiffness=args.stiffness)
+    settings = ContactSettings((Sphere(radius),), (waiting,), dhat=args.dhat, stiffness=args.stiffness,
+                               faces=not args.nodes)
     problem = FaceProblem(model, degree=args.degree, contact=settings)
     contact = problem.contact
     failures = FailureCount()
@@ -155,7 +165,9 @@ def main():
     site, normal = cheek_frame(model, args.site, problem.u)
     rest = contact.surface.rest[contact.surface.triangles]  # flat triangles (four per P2 facet)
     median_edge = float(np.median(np.linalg.norm(rest - np.roll(rest, 1, axis=1), axis=2)))
+    faces = isinstance(contact, FaceContactPotential)
     summary = dict(tets=model.mesh.topology.index_map(3).size_global, ranks=comm.size, degree=args.degree,
+                   barrier="skin triangles" if faces else "skin nodes",
                    expression=args.expression, radius_mm=radius, dhat_mm=args.dhat, stiffness_kPa=args.stiffness, site=args.site,
                    site_mm=site.round(4).tolist(), normal=normal.round(6).tolist(),
                    skin_nodes=contact.surface.num_nodes, skin_triangles=len(contact.surface.triangles),
@@ -193,6 +205,7 @@ def main():
                    load_steps=report.load_steps, failed_newton_solves=failures.count, seconds=round(seconds, 2),
                    smallest_gap_any_iterate_mm=gap, deepest_node_rest_mm=contact.surface.rest[node].round(3).tolist(),
                    smallest_gap_mm=contact.min_gap(u), contact_nodes=contact.contact_nodes(u),
+                   contact_triangles=contact.contact_triangles(u) if faces else None,
                    force_on_sphere_mN=on_sphere.round(4).tolist(),
                    force_along_normal_mN=round(float(on_sphere @ normal), 4),
                    deepest_triangle_point_inside_mm=dip,
@@ -204,27 +217,26 @@ def main():
             out.write_text(json.dumps(summary, indent=1) + "\n")
     problem.solver.snes.cancelMonitor()
 
-    # Pressure per skin node at the deepest pose: the barrier's force over the node's area.
+    # Pressure per skin node at the deepest pose: the barrier's nodal force over the node's area,
+    # the triangles' pressures averaged around the node, and the nodal forces and areas summed
+    # with hat weights over one median skin edge (plotted).
     u = problem.u.x.array
-    pressure = np.linalg.norm(contact.nodal_forces(u), axis=1) / contact.surface.areas
     x = contact.positions(u)
-    triangles = contact.surface.triangles
-    edges = np.unique(np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]),
-                              axis=1), axis=0)
-    neighbour_peak = np.zeros(len(x))
-    np.maximum.at(neighbour_peak, edges[:, 0], pressure[edges[:, 1]])
-    np.maximum.at(neighbour_peak, edges[:, 1], pressure[edges[:, 0]])
-    pressed = pressure > 0.0
-    spikes = pressed & (pressure > 2.0 * neighbour_peak)
     centre = contact.poses[0].translation
     axial = (x - centre) @ normal
     off_axis = np.linalg.norm((x - centre) - axial[:, None] * normal, axis=1)
-    profile = hertz_profile(off_axis[pressed], pressure[pressed]) if pressed.sum() >= 2 else None
-    summary.update(pressed_nodes=int(pressed.sum()), peak_pressure_kPa=float(pressure.max()),
-                   median_pressure_of_pressed_nodes_kPa=float(np.median(pressure[pressed])) if pressed.any() else 0.0,
-                   contact_patch_radius_mm=float(off_axis[pressed].max()) if pressed.any() else 0.0,
-                   isolated_spikes=int(spikes.sum()),
-                   hertz_fit=profile,
+    force_over_area = np.linalg.norm(contact.nodal_forces(u), axis=1) / contact.surface.areas
+    summary.update(nodal_force_over_area=pressure_statistics(contact.surface.triangles, force_over_area, off_axis, x, normal))
+    pressure = force_over_area
+    if faces:
+        pressure = contact.face_pressure(u)
+        summary.update(triangle_average=pressure_statistics(contact.surface.triangles, pressure, off_axis, x, normal))
+    filtered = smoothed_pressure(x, contact.nodal_forces(u), contact.surface.areas, median_edge)
+    summary.update(filtered_at_one_edge=pressure_statistics(contact.surface.triangles, filtered, off_axis, x, normal))
+    pressure = filtered
+    pressed = pressure > 0.0
+    summary.update(plotted_pressure="filtered_at_one_edge",
+                   **summary["filtered_at_one_edge"],
                    pressure_kPa_by_distance_from_axis_mm=[[round(float(r), 3), round(float(p), 3)] for r, p in
                                                           sorted(zip(off_axis[pressed], pressure[pressed]))],
                    total_seconds=round(time.perf_counter() - began, 2))
@@ -240,7 +252,9 @@ def main():
                               f"{summary['tets']} tets")
             record(args.render, tets=args.tets, ranks=comm.size)
     if comm.rank == 0:
-        print(json.dumps({k: v for k, v in summary.items() if k not in ("poses", "pressure_kPa_by_distance_from_axis_mm")}),
+        print(json.dumps({k: v for k, v in summary.items() if k not in ("poses", "pressure_kPa_by_distance_from_axis_mm",
+                                                                        "nodal_force_over_area", "triangle_average",
+                                                                        "filtered_at_one_edge")}),
               flush=True)
         out.write_text(json.dumps(summary, indent=1) + "\n")
         record(out, tets=args.tets, ranks=comm.size)
@@ -249,14 +263,42 @@ def main():
             record(args.plot, tets=args.tets, ranks=comm.size)
 
 
+def pressure_statistics(triangles: np.ndarray, pressure: np.ndarray, off_axis: np.ndarray, x: np.ndarray,
+                        normal: np.ndarray) -> dict:
+    """Pressed nodes, peak and median pressure, the patch radius, isolated spikes (a pressed node
+    with more than twice the pressure of every neighbour) and the fit of Hertz's profile against
+    the distance from the sphere's axis and, as well, from the line along the path through the
+    centre of pressure (the pressure-weighted mean of the nodes): on the curved cheek the patch
+    need not be centred on the sphere's path."""
+    edges = np.unique(np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]),
+                              axis=1), axis=0)
+    neighbour_peak = np.zeros(len(pressure))
+    np.maximum.at(neighbour_peak, edges[:, 0], pressure[edges[:, 1]])
+    np.maximum.at(neighbour_peak, edges[:, 1], pressure[edges[:, 0]])
+    pressed = pressure > 0.0
+    centre = pressure @ x / max(pressure.sum(), 1e-300)
+    offset = x - centre
+    off_centre = np.linalg.norm(offset - (offset @ normal)[:, None] * normal, axis=1)
+    return dict(pressed_nodes=int(pressed.sum()), peak_pressure_kPa=float(pressure.max()),
+                median_pressure_of_pressed_nodes_kPa=float(np.median(pressure[pressed])) if pressed.any() else 0.0,
+                contact_patch_radius_mm=float(off_axis[pressed].max()) if pressed.any() else 0.0,
+                isolated_spikes=int((pressed & (pressure > 2.0 * neighbour_peak)).sum()),
+                hertz_fit=hertz_profile(off_axis[pressed], pressure[pressed]) if pressed.sum() >= 2 else None,
+                hertz_fit_about_centre_of_pressure=(hertz_profile(off_centre[pressed], pressure[pressed])
+                                                    if pressed.sum() >= 2 else None))
+
+
 def hertz_profile(radii: np.ndarray, pressures: np.ndarray) -> dict:
-    """The least-squares fit p0 sqrt(1 - (r / a)^2) of the pressed nodes' pressures against their
-    distance r from the sphere's axis (Hertz's profile; a over a grid from the outermost pressed
-    node to twice it, p0 in closed form), and the pressures' RMS scatter about it relative to p0:
-    a smooth pressure lies close to one such profile, node-to-node noise does not."""
+    """The least-squares fit p0 sqrt(1 - (r / a)^2) (0 beyond a) of the pressed nodes' pressures
+    against their distance r from the sphere's axis (Hertz's profile; a over a grid from 0.3 to 2
+    times the outermost pressed node's r, p0 in closed form), and the pressures' RMS scatter about
+    it relative to p0: a smooth pressure lies close to one such profile, node-to-node noise does
+    not. (A field with a faint rim, as a filtered one has, fits an a inside its outermost node.)"""
     best = None
-    for a in np.linspace(1.0, 2.0, 101) * radii.max():
+    for a in np.linspace(0.3, 2.0, 171) * radii.max():
         shape = np.sqrt(np.clip(1.0 - (radii / a) ** 2, 0.0, None))
+        if not shape.any():  # a inside every pressed node
+            continue
         p0 = float(shape @ pressures / (shape @ shape))
         rms = float(np.sqrt(np.mean((pressures - p0 * shape) ** 2)))
         if best is None or rms < best["rms_kPa"]:
@@ -300,7 +342,8 @@ def plot(path, summary, x, pressure, centre, normal, off_axis):
     right.set_title("pressure profile")
     deepest = summary["poses"][-1]
     figure.suptitle(f"sphere R {summary['radius_mm']:g} mm, {deepest['depth_mm']:g} mm into the cheek, "
-                    f"{summary['expression']}, {summary['tets']} tets P{summary['degree']}: {summary['pressed_nodes']} pressed nodes, "
+                    f"{summary['expression']}, {summary['tets']} tets P{summary['degree']}, barrier on the {summary['barrier']}: "
+                    f"{summary['pressed_nodes']} pressed nodes, "
                     f"force {deepest['force_along_normal_mN']:.0f} mN", fontsize=10)
     figure.tight_layout()
     figure.savefig(path, dpi=120)

@@ -48,7 +48,8 @@ def sphere_at(depth):
 
 
 def pressed_slab(comm=MPI.COMM_WORLD, depth=1.5, degree=1):
-    settings = ContactSettings((Sphere(RADIUS),), (sphere_at(-1.0),), dhat=0.05, stiffness=10.0)
+    """The nodal barrier (tests/test_face_contact.py: the skin triangles' one, a sphere's default)."""
+    settings = ContactSettings((Sphere(RADIUS),), (sphere_at(-1.0),), dhat=0.05, stiffness=10.0, faces=False)
     problem = FaceProblem(skin_slab(comm), degree=degree, contact=settings)
     problem.solve(activations=ACTIVATIONS, objects=(sphere_at(depth),))
     return problem
@@ -227,7 +228,8 @@ def test_sphere_pressed_into_the_cheek_of_the_small_face(model):
     def ball(depth):
         return AffineMap(np.eye(3), cheek_path(model, [depth], radius)[0])
 
-    problem = FaceProblem(model, contact=ContactSettings((Sphere(radius),), (ball(-1.0),), dhat=0.05, stiffness=10.0))
+    problem = FaceProblem(model, contact=ContactSettings((Sphere(radius),), (ball(-1.0),), dhat=0.05, stiffness=10.0,
+                                                         faces=False))
     activations = {"zygomaticus_major_left": 0.5}
     problem.solve(activations=activations)
     gaps = []
@@ -272,8 +274,12 @@ def test_simulate_moves_a_sphere_along_a_path(model, builtin_model_path, shared_
                  "--out", str(out), "--no-render"]) == 0
     rows = json.loads((out / "summary.json").read_text())["object"]
     assert [row["pose"] for row in rows] == [0, 1, 2, 3]
-    assert rows[2]["contact_nodes"] >= 3 and rows[2]["min_gap_mm"] > 0.0
-    assert rows[3]["contact_nodes"] == 0  # the sphere has left again
+    # The sphere keeps the skin's triangles out (its nodes stay further than dhat).
+    assert rows[2]["contact_triangles"] >= 3 and rows[2]["min_triangle_gap_mm"] > 0.0 and rows[2]["min_gap_mm"] > 0.0
+    # Back at depth 0 the sphere's surface passes through the marker site, on a skin triangle: it
+    # only touches the skin there.
+    assert rows[3]["min_triangle_gap_mm"] > 0.0
+    assert np.linalg.norm(rows[3]["force_on_object_mN"]) < 0.1 * np.linalg.norm(rows[2]["force_on_object_mN"])
     assert (out / "object.xdmf").exists() and (out / "object.h5").exists()
     inside, pressed_in = shared_dir / "inside.txt", cheek_path(model, [3.0])[0]
     if MPI.COMM_WORLD.rank == 0:

@@ -515,6 +515,15 @@ def _contact_row(contact, displacement) -> dict:
                 pressed_mN=round(float(np.linalg.norm(forces, axis=1).sum()), 4))
 
 
+def _triangle_contact_row(contact, displacement) -> dict:
+    """The skin triangles' contact with spheres (``face_contact.FaceContactPotential``), if any."""
+    from face_dolfinx.physics.face_contact import FaceContactPotential
+    if not isinstance(contact, FaceContactPotential):
+        return {}
+    return dict(contact_triangles=contact.contact_triangles(displacement),
+                min_triangle_gap_mm=round(float(contact.triangle_gaps(displacement).min()), 6))
+
+
 def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int, render: bool = False) -> list[dict]:
     """The contact object along ``poses`` (the first is where it stands), one solve and one face
     frame per pose; the object's surface as its own XDMF series (a fan of tetrahedra from its
@@ -540,7 +549,8 @@ def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int, r
                        seconds=round(report.seconds, 3) if report else 0.0,
                        force_on_object_mN=force.round(4).tolist(),
                        min_gap_mm=round(contact.min_gap(problem.u.x.array), 6),
-                       contact_nodes=contact.contact_nodes(problem.u.x.array))
+                       contact_nodes=contact.contact_nodes(problem.u.x.array),
+                       **_triangle_contact_row(contact, problem.u.x.array))
             rows.append(row)
             log.info("object pose %d: Newton %d its, force %.3f mN, min gap %.4f mm, %d contact nodes", index,
                      row["newton_iterations"], float(np.linalg.norm(force)), row["min_gap_mm"], row["contact_nodes"])

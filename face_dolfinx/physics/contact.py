@@ -4,7 +4,9 @@ An object (``Sphere``, ``HalfSpace``) is rigid and moves as prescribed: its pose
 from its own frame to the world like the bone frames, is a control set before each solve (a
 trajectory is a sequence of poses), so moving it recompiles nothing. The contact surface is a
 tagged set of boundary facets (the skin of the face). Every node of it (vertices, and for P2 the
-edge midpoints: each P2 triangle is split into four flat ones) keeps a gap g > 0 to every object.
+edge midpoints: each P2 triangle is split into four flat ones) keeps a gap g > 0 to every object;
+against a sphere, every flat triangle does (``face_contact.FaceContactPotential``, the default
+through ``ContactSettings.faces``).
 
 The energy is the incremental potential contact barrier of Li et al. (2020), the IPC Toolkit's
 ``ipctk.barrier`` b(g) = -(g - dhat)^2 ln(g / dhat) for g < dhat and 0 beyond, weighted by each
@@ -235,7 +237,8 @@ class ContactSettings:
     pressure at g = dhat / 2), and the tagged boundary ``surface`` that touches them. With
     ``teeth``, the model's teeth (``FaceModel.teeth``, each moving with its bone frame) touch the
     facets tagged ``teeth_surface`` (the lining of the lips and cheeks) with the same stiffness and
-    their own activation distance ``teeth_dhat`` (mm)."""
+    their own activation distance ``teeth_dhat`` (mm). With ``faces`` the spheres keep the
+    surface's triangles out, not only its nodes (``face_contact.FaceContactPotential``)."""
 
     objects: tuple = ()
     poses: tuple = ()
@@ -246,6 +249,7 @@ class ContactSettings:
     teeth: bool = False
     teeth_surface: str = "oral"
     teeth_dhat: float = TEETH_DHAT
+    faces: bool = True
 
     def rest_poses(self) -> tuple:
         return tuple(self.poses) if self.poses else tuple(AffineMap() for _ in self.objects)
@@ -341,6 +345,7 @@ class ContactPotential:
             raise ValueError(f"{settings.where}: the contact surface {settings.surface!r} has no facets")
         self.poses = settings.rest_poses()
         self.ignored = np.zeros(self.surface.num_nodes, dtype=bool)
+        self.node_barrier = tuple(True for _ in self.objects)  # per object: its barrier acts on the nodes
         self._last_terms = None  # (positions, poses, ignored, terms) of the last ``_terms``
         if len(self.poses) != len(self.objects):
             raise ValueError(f"{settings.where}: {len(self.objects)} objects but {len(self.poses)} poses")
@@ -408,7 +413,10 @@ class ContactPotential:
         if last is not None and last[1] is self.poses and last[2] is self.ignored and np.array_equal(last[0], x):
             return last[3]
         terms = []
-        for obj, pose in zip(self.objects, self.poses):
+        for obj, pose, by_nodes in zip(self.objects, self.poses, self.node_barrier):
+            if not by_nodes:  # a subclass's barrier takes the object
+                terms.append((np.zeros(0, dtype=int), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3))))
+                continue
             # Nodes surely beyond dhat get a lower bound of their gap (>= dhat): inactive either way.
             gap, normal, curvature = obj.gaps(x, pose, within=self.dhat)
             active = np.flatnonzero((gap < self.dhat) & ~self.ignored)

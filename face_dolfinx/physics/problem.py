@@ -7,7 +7,8 @@ intraoral pressure) live in DG0 functions, a ``fem.Constant`` and the Dirichlet 
 them never recompiles a form.
 
 Rigid kinematic objects (``contact``, ``face_dolfinx.physics.contact``: a sphere, a half-space)
-press on a tagged surface (the skin) through a barrier energy the solver adds to the flesh's; their
+press on a tagged surface (the skin) through a barrier energy the solver adds to the flesh's (a
+sphere on the surface's triangles, ``face_dolfinx.physics.face_contact``, the others on its nodes); their
 poses are controls (``Controls.objects``), each solve pushes the surface out of an object's new pose
 before Newton (the barrier needs a start that overlaps nothing), and the continuation fallback walks
 the poses like the other controls. With ``ContactSettings(teeth=True)`` the model's teeth (closed
@@ -46,6 +47,7 @@ from face_dolfinx.model.regions import material_fields
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
 from face_dolfinx.physics.contact import CARRY_REACH, CCD_KEEP, PUSH_GAP, ContactPotential, ContactSettings
+from face_dolfinx.physics.face_contact import FACE_NEWTON_ITERATIONS, FaceContactPotential, contact_potential
 from face_dolfinx.physics.self_contact import LIP_NEWTON_ITERATIONS, LipContact, LipContactSettings, lip_facets
 from face_dolfinx.physics.material import FaceMaterial, FiberSlot
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
@@ -271,7 +273,7 @@ class FaceProblem:
         if contact is not None and (contact.objects or not contact.teeth):
             tag = self._surface_tag(contact.surface, f"{contact.where}: model {model.path} has no facets tagged "
                                                      f"{contact.surface!r} to touch the objects")
-            self.contact = ContactPotential(self.V, model.facet_tags.find(tag), contact)
+            self.contact = contact_potential(self.V, model.facet_tags.find(tag), contact)
         if self.contact is not None:
             self.contact.check_clear(self.u.x.array)
         self.teeth_bones = tuple(model.teeth) if contact is not None and contact.teeth else ()
@@ -283,6 +285,8 @@ class FaceProblem:
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
         # closed by the orbicularis oris at 1): Newton is given room before continuation.
         lip_newton = {"snes_max_it": LIP_NEWTON_ITERATIONS} if self.lips is not None else {}
+        if self.lips is None and isinstance(self.contact, FaceContactPotential):
+            lip_newton = {"snes_max_it": FACE_NEWTON_ITERATIONS}  # likewise the triangles on a sphere
         # The time integrator adds inertia and damping to the residual, with its test function.
         self._residual, self._test_function = residual, v
         self._tangent_structure = "general" if intraoral_pressure else "spd"
