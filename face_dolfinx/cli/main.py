@@ -615,7 +615,8 @@ def synth(model, args) -> None:
     if args.truth_contact is not None and not args.contact:
         raise SystemExit(f"synth --truth-contact {args.truth_contact}: give --contact too")
     try:
-        contact = truth_contact_options(model, args.truth_contact, where="synth --truth-contact") if args.contact else {}
+        contact = (truth_contact_options(model, args.truth_contact, where="synth --truth-contact")
+                   if args.contact else {})
     except ValueError as error:
         raise SystemExit(str(error)) from None
     problem = FaceProblem(model, **contact)
