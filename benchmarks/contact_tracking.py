@@ -3,7 +3,8 @@ contact off and on, one after the other in one run (docs/performance.md, "Contac
 
 A bilabial take ("ma ba pa", ``capture/synthetic.py``: the orbicularis oris at 0.9 presses the
 lips together with the jaw closed, then an open vowel) of ``--take-frames`` frames at 60 Hz is
-solved with lip contact (the truth: lips that touch and do not pass) at the model's marker sites,
+solved with contact (``--truth-contact``: by default the lips on each other and the lining on the
+teeth, as ``fit --contact`` models the face; ``lips``: the lips only) at the model's marker sites,
 with 0.5 mm noise and no head motion; the stretch of ``--frames`` frames from ``--start`` (by
 default the lips closing) is tracked by ``face_dolfinx.tracking.Tracker`` (the loop of
 ``run.py fit``, every frame written to a fit folder under ``--out``) with ``fit --fast``
@@ -191,6 +192,8 @@ def main():
                         help="length of the bilabial take at 60 Hz: 60 frames put a closure into about 12")
     parser.add_argument("--start", type=int, default=5, help="first tracked frame of the take (5: the lips closing)")
     parser.add_argument("--noise", type=float, default=0.5, help="marker noise, RMS of the 3D error (mm)")
+    parser.add_argument("--truth-contact", choices=("lips", "lips+teeth"),
+                        help="what touches in the truth's solves (default: as fit --contact, lips+teeth)")
     parser.add_argument("--max-seconds", type=float, default=1800.0,
                         help="a variant starts no frame after tracking this long")
     parser.add_argument("--abort-seconds", type=float,
@@ -211,12 +214,11 @@ def main():
         raise SystemExit("--max-seconds and --abort-seconds: give positive seconds")
 
     from face_dolfinx.alignment.placement import place_on_model
-    from face_dolfinx.capture.synthetic import synthesize_take
+    from face_dolfinx.capture.synthetic import synthesize_take, truth_contact_options
     from face_dolfinx.fitting import MarkerSet
     from face_dolfinx.model.anatomy import build_builtin_face
     from face_dolfinx.model.folder import load_model
     from face_dolfinx.physics.problem import FaceProblem
-    from face_dolfinx.physics.self_contact import LipContactSettings
 
     comm = MPI.COMM_WORLD
     if args.verbose and comm.rank == 0:
@@ -228,7 +230,8 @@ def main():
                    else load_model(build_builtin_face(args.truth_tets, comm=comm), comm))
     names = list(truth_model.markers)
     sites = np.array([truth_model.markers[name] for name in names])
-    truth_problem = FaceProblem(truth_model, lip_contact=LipContactSettings())
+    truth_problem = FaceProblem(truth_model, **truth_contact_options(truth_model, args.truth_contact,
+                                                                     where="--truth-contact"))
     frames = range(args.start, args.start + args.frames)
 
     def progress(index):

@@ -8,8 +8,14 @@ be scored against it.
 
 Noise is given as the RMS of the 3D error per marker (per-coordinate sigma = noise / sqrt(3)), so
 "marker RMS error <= 1.1 x noise" compares like with like.
+
+Each frame's solve starts from the last frame's equilibrium. Where that fails (Newton through a jaw
+motion with the lips pressed on each other and on the teeth, say), the frame is solved from rest:
+an equilibrium at the frame's true controls reached along another path, which with contact need
+not be the one the take's history would reach (``TakeTruth.solved_from_rest`` lists those frames).
 """
 from dataclasses import dataclass
+import logging
 import math
 from pathlib import Path
 
@@ -17,8 +23,16 @@ import numpy as np
 
 from face_dolfinx.model.bones import AffineMap, jaw_pose, rigid_map, rotation
 from face_dolfinx.capture import Capture
+from face_dolfinx.equilibrium.solver import EquilibriumError
+from face_dolfinx.physics.contact import TEETH_STIFFNESS, ContactSettings
+from face_dolfinx.physics.self_contact import LipContactSettings
+
+log = logging.getLogger(__name__)
 
 SCENARIOS = ("smile", "jaw", "brow", "speech", "mixed", "training", "bilabial")
+# What touches what in a truth solved with contact: the lips each other, and the lining of the lips
+# and cheeks the model's teeth too.
+TRUTH_CONTACTS = ("lips", "lips+teeth")
 
 
 @dataclass
@@ -27,12 +41,14 @@ class TakeTruth:
     tmj: np.ndarray           # (frames, 3): opening (rad), right slide, left slide (mm)
     head: list                # per frame AffineMap of the cranium
     clean_positions: np.ndarray  # (frames, markers, 3) before noise, outliers and gaps
+    solved_from_rest: tuple = ()  # frames whose solve from the last frame's equilibrium failed
 
     def select(self, frames) -> "TakeTruth":
         """The truth of some frames only (indices into this take's frames)."""
         frames = np.asarray(frames, dtype=int)
+        from_rest = tuple(int(i) for i, f in enumerate(frames) if f in self.solved_from_rest)
         return TakeTruth(self.activations[frames], self.tmj[frames], [self.head[f] for f in frames],
-                         self.clean_positions[frames])
+                         self.clean_positions[frames], from_rest)
 
 
 def _smooth_pulse(t: np.ndarray, start: float, peak: float, end: float) -> np.ndarray:
@@ -140,6 +156,26 @@ def _training_curves(model, n_frames, activations, tmj, drive) -> None:
             drive(what, level)
 
 
+def truth_contact_options(model, truth_contact: str | None = None, where: str = "truth_contact") -> dict:
+    """The ``FaceProblem`` keywords (``lip_contact``, ``contact``) of a truth solved with contact.
+
+    ``truth_contact``: ``"lips"`` (lip self-contact) or ``"lips+teeth"`` (the lips on each other and
+    the lining on the teeth, with the settings ``fit --contact`` uses: ``TrackingSettings(contact=True)``);
+    None: the surfaces ``fit --contact`` uses for ``model``, "lips+teeth" if it has teeth, else "lips",
+    so that a fit with contact models the take as it was made. ``where`` names the option in errors.
+    """
+    if truth_contact is None:
+        truth_contact = "lips+teeth" if model.teeth else "lips"
+    if truth_contact not in TRUTH_CONTACTS:
+        raise ValueError(f"{where} {truth_contact!r}: choose from {', '.join(TRUTH_CONTACTS)}")
+    if truth_contact == "lips+teeth" and not model.teeth:
+        raise ValueError(f"{where} {truth_contact}: model {model.path} has no teeth ([teeth] in its model.toml); "
+                         "use lips")
+    teeth = truth_contact == "lips+teeth"
+    return dict(lip_contact=LipContactSettings(where=where),
+                contact=ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS, where=where) if teeth else None)
+
+
 def synthesize_take(problem, markers, model, scenario: str = "speech", n_frames: int = 30,
                     frame_rate: float = 60.0, noise: float = 0.5, outliers: int = 0,
                     outlier_size: float = 10.0, gaps: int = 0, head_motion: bool = True,
@@ -155,9 +191,17 @@ def synthesize_take(problem, markers, model, scenario: str = "speech", n_frames:
         activations, tmj, head = activations[frames], tmj[frames], [head[f] for f in frames]
         n_frames = len(frames)
     clean = np.zeros((n_frames, len(markers.reference), 3))
+    from_rest = []
     for frame in range(n_frames):
-        problem.solve(activations=activations[frame], cranium=head[frame],
-                      jaw=jaw_pose(model.jaw, *tmj[frame]))
+        controls = dict(activations=activations[frame], cranium=head[frame], jaw=jaw_pose(model.jaw, *tmj[frame]))
+        try:
+            problem.solve(**controls)
+        except EquilibriumError as error:
+            if problem.comm.rank == 0:
+                log.warning("synthetic take, frame %d: %s; solving it from rest", frame, error)
+            problem.reset_to_rest()
+            problem.solve(**controls)
+            from_rest.append(frame)
         clean[frame] = markers.positions(problem.u.x.array, head[frame])
         if progress is not None:
             progress(frame)
@@ -173,7 +217,7 @@ def synthesize_take(problem, markers, model, scenario: str = "speech", n_frames:
         noisy[start:start + max(2, n_frames // 10), marker] = np.nan
     names = marker_names or markers.names
     capture = Capture(names, noisy, frame_rate)
-    return capture, TakeTruth(activations, tmj, head, clean)
+    return capture, TakeTruth(activations, tmj, head, clean, tuple(from_rest))
 
 
 def truth_path(capture_path) -> Path:
@@ -186,10 +230,12 @@ def save_truth(path, truth: TakeTruth, muscle_names: list[str]) -> None:
     np.savez(path, activations=truth.activations, tmj=truth.tmj,
              head_matrices=np.array([h.matrix for h in truth.head]),
              head_translations=np.array([h.translation for h in truth.head]),
-             clean_positions=truth.clean_positions, muscle_names=np.array(muscle_names))
+             clean_positions=truth.clean_positions, muscle_names=np.array(muscle_names),
+             solved_from_rest=np.array(truth.solved_from_rest, dtype=int))
 
 
 def load_truth(path) -> TakeTruth:
     with np.load(path) as data:
         head = [AffineMap(M, t) for M, t in zip(data["head_matrices"], data["head_translations"])]
-        return TakeTruth(data["activations"], data["tmj"], head, data["clean_positions"])
+        from_rest = tuple(int(f) for f in data["solved_from_rest"]) if "solved_from_rest" in data else ()
+        return TakeTruth(data["activations"], data["tmj"], head, data["clean_positions"], from_rest)

@@ -614,7 +614,7 @@ def synth(model, args) -> None:
     from face_dolfinx.capture import write_capture
     from face_dolfinx.fitting import MarkerSet
     from face_dolfinx.physics.problem import FaceProblem
-    from face_dolfinx.capture.synthetic import save_truth, synthesize_take, truth_path
+    from face_dolfinx.capture.synthetic import save_truth, synthesize_take, truth_contact_options, truth_path
     out = pathlib.Path(args.out)
     if out.exists() and not args.overwrite:
         raise FileExistsError(f"{out} already exists; pass --overwrite to replace it")
@@ -622,7 +622,14 @@ def synth(model, args) -> None:
     if args.first_frame < 0 or args.first_frame + args.frames > take_frames:
         raise SystemExit(f"--first-frame {args.first_frame} + --frames {args.frames} runs past the "
                          f"{take_frames}-frame take (--take-frames)")
-    problem = FaceProblem(model, lip_contact=_lip_contact(args))
+    if args.truth_contact is not None and not args.contact:
+        raise SystemExit(f"synth --truth-contact {args.truth_contact}: give --contact too")
+    try:
+        contact = (truth_contact_options(model, args.truth_contact, where="synth --truth-contact")
+                   if args.contact else {})
+    except ValueError as error:
+        raise SystemExit(str(error)) from None
+    problem = FaceProblem(model, **contact)
     names = list(model.markers)
     markers = MarkerSet(problem, np.array([model.markers[n] for n in names]), names=names)
     capture, truth = synthesize_take(
@@ -1049,7 +1056,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "jaw limits, expressions; give frames = a multiple of the segment count) or bilabial "
                         "(ma ba pa: lips pressed together three times; with --contact)")
     p.add_argument("--contact", action="store_true",
-                   help="lip self-contact in the truth's solves (docs/contact.md)")
+                   help="contact in the truth's solves, what fit --contact models: the lips on each other and "
+                        "the lining on the model's teeth (docs/contact.md)")
+    p.add_argument("--truth-contact", choices=("lips", "lips+teeth"),
+                   help="with --contact: lips (the lips only) or lips+teeth (default for a model with teeth)")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--take-frames", type=int,
                    help="write only --frames frames of a take this long (the scenario's motion spans the "
