@@ -2,7 +2,7 @@
 built-in face's teeth are closed and behind the lining, written and read with the model, carried
 along to a subject; the lips pressed on them by the orbicularis oris stay outside at every Newton
 iterate and rest on them (and go through them without the contact) after one Newton solve of
-few iterations; a jaw opened and closed with the teeth on keeps every lining node outside them at
+few iterations, also from a prediction that would enter the teeth; a jaw opened and closed with the teeth on keeps every lining node outside them at
 every Newton iterate; the same force on 1 and 2 ranks; bad teeth are refused naming the model file.
 """
 import shutil
@@ -159,6 +159,27 @@ def test_newton_tangent_projects_the_barrier_blocks(pressed):
         else:
             negative += 1
     assert projected == (MPI.COMM_WORLD.allreduce(negative, op=MPI.SUM) > 0)
+
+
+def test_a_prediction_into_the_teeth_is_pulled_back(model, pressed, caplog):
+    """A Gauss-Newton prediction that would put lining nodes inside the teeth (here the pressed
+    state's motion from rest, tripled) starts Newton only as far along it as the teeth allow:
+    Newton from it converges (without the pull-back it failed and continuation from the last
+    equilibrium took over), no node inside at any iterate, the same equilibrium."""
+    equilibrium = pressed[0].u.x.array
+    problem = FaceProblem(model, contact=ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS))
+    teeth = problem.teeth_contact
+    guess = 3.0 * equilibrium
+    assert teeth.gaps(guess).min() < 0.0
+    assert teeth.admissible_fraction(problem.u.x.array, guess) < 1.0
+    gaps = []
+    problem.solver.snes.setMonitor(lambda snes, it, norm: gaps.append(teeth.min_gap(snes.getSolution().array_r)))
+    with caplog.at_level("INFO", logger="face_dolfinx.physics.problem"):
+        report = problem.solve(activations=orbicularis_oris(model), guess=guess)
+    assert report.converged and report.load_steps == 1
+    assert "Newton from the predicted shape failed" not in caplog.text
+    assert min(gaps) > 0.0
+    assert problem.comm.allreduce(np.abs(problem.u.x.array - equilibrium).max(initial=0.0), op=MPI.MAX) < 1e-3
 
 
 def test_same_force_on_one_rank(model, builtin_model_path, pressed):

@@ -505,9 +505,14 @@ class ContactPotential:
     def step_fraction(self, x: PETSc.Vec, step: PETSc.Vec, largest: float) -> float:
         """Largest t in (0, 1] such that no point of x - s t largest step, s in [0, 1], brings a
         node closer to an object than (1 - CCD_KEEP) of its gap now."""
+        return self.admissible_fraction(x.array_r, x.array_r - largest * step.array_r)
+
+    def admissible_fraction(self, start: np.ndarray, end: np.ndarray) -> float:
+        """The same bound for the straight path from the displacement ``start`` to ``end`` (dof
+        arrays, owned part read), the objects at their present poses; the same on every rank."""
         kept = ~self.ignored
-        points = self.positions(x.array_r)[kept]
-        moves = -largest * self.surface.gather(step.array_r)[kept]
+        points = self.positions(start)[kept]
+        moves = self.positions(end)[kept] - points
         # A node farther than its move / CCD_KEEP cannot lose CCD_KEEP of its gap: a lower bound of
         # its gap will do. Its clearance is then smaller than (1 - CCD_KEEP) gap but still positive, a
         # collision-free bound, and its first contact lies beyond t = 1 with either clearance.

@@ -234,15 +234,15 @@ class FaceContactPotential(ContactPotential):
                                     addv=PETSc.InsertMode.ADD_VALUES)
         A.assemble()
 
-    def step_fraction(self, x: PETSc.Vec, step: PETSc.Vec, largest: float) -> float:
-        """The nodal bound, and no point of x - s t largest step, s in [0, 1], brings a triangle
-        closer to a sphere than (1 - CCD_KEEP) of its gap now."""
-        fraction = super().step_fraction(x, step, largest)
-        points = self.positions(x.array_r)
-        moves = -largest * self.surface.gather(step.array_r)
+    def admissible_fraction(self, start: np.ndarray, end: np.ndarray) -> float:
+        """The nodal bound, and no point of the straight path from the displacement ``start`` to
+        ``end`` brings a triangle closer to a sphere than (1 - CCD_KEEP) of its gap now."""
+        fraction = super().admissible_fraction(start, end)
+        points = self.positions(start)
+        moves = self.positions(end) - points
         triangles = self.surface.triangles
         reach = np.linalg.norm(moves, axis=1)[triangles].max(axis=1) / CCD_KEEP
-        for gaps, (obj, pose) in zip(self.triangle_gaps(x.array_r),
+        for gaps, (obj, pose) in zip(self.triangle_gaps(start),
                                      [(o, p) for o, p, f in zip(self.objects, self.poses, self.by_faces) if f]):
             centre = pose.translation
             for triangle, gap in zip(triangles[gaps < reach], gaps[gaps < reach]):

@@ -487,8 +487,10 @@ class FaceProblem:
             equilibrium = self.u.x.array.copy()
             # A long linear prediction can invert elements: pull it back towards the equilibrium.
             fraction = self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - guess)
-            if self.lips is not None:  # ... or let the lips pass through each other
-                fraction *= self.lips.admissible_fraction(equilibrium, equilibrium + fraction * (guess - equilibrium))
+            # ... or let the lips pass through each other, or the lining into the teeth
+            for term in (self.lips, self.teeth_contact, self.contact):
+                if term is not None:
+                    fraction *= term.admissible_fraction(equilibrium, equilibrium + fraction * (guess - equilibrium))
             self.u.x.array[:] = equilibrium + fraction * (guess - equilibrium)
             held = self._clear_objects(target)
             self.set_controls(target)
