@@ -700,6 +700,7 @@ def fit(model, args) -> None:
     from face_dolfinx.alignment.placement import place_on_model
     from face_dolfinx.capture import chunk_ranges, read_capture
     from face_dolfinx.capture.synthetic import truth_path
+    from face_dolfinx.fitting.formulations import check_contact
     from face_dolfinx.results.folder import FitFolderError
     from face_dolfinx.tracking import Tracker
     comm = MPI.COMM_WORLD
@@ -718,6 +719,10 @@ def fit(model, args) -> None:
     if args.chunk is not None and not 0 <= args.chunk < chunks:
         raise SystemExit(f"--chunk {args.chunk}: the take has chunks 0..{chunks - 1}")
     tracker = Tracker(model, settings, rank_groups=1 if args.chunk is not None else min(chunks, comm.size))
+    try:  # a formulation that cannot carry the contact: refused before the folder exists
+        check_contact(tracker.problem, settings.fit)
+    except ValueError as error:
+        raise SystemExit(f"face-dolfinx fit: {error}") from None
     correspondence = str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None
     try:
         folder = tracker.open_folder(args.out, capture, placement, chunks=args.chunks, overwrite=args.overwrite,

@@ -76,9 +76,6 @@ class TrackingSettings:
             ("newton_tolerance", self.newton_tolerance > 0, "give a positive distance in mm"),
             ("refresh_contraction", 0 < self.refresh_contraction < 1, "give a factor between 0 and 1"),
             ("line_search_iterations", self.line_search_iterations >= 1, "give 1 or more"),
-            ("contact", not (self.contact and self.fit.mode == "paper" and (self.fit.fit_head or self.fit.fit_jaw)),
-             "the teeth move with the exact mode's rigid bone frames, not the paper mode's affine ones: "
-             "fit with contact in exact mode"),
         )
         for key, valid, requirement in checks:
             if not valid:
