@@ -161,3 +161,31 @@ def test_simulate_dynamic_moves_a_sphere_into_the_cheek(model, builtin_model_pat
     with pytest.raises(SystemExit, match=rf"{inside} \(its first pose\): the sphere of radius 15 mm .* starts inside"):
         main([*options, "--path", str(inside), "--out", str(shared_dir / "never")])
     assert not (shared_dir / "never").exists()
+
+
+def test_lips_pressed_in_time_on_the_small_face(model):
+    """The 5K face's pucker (orbicularis oris at 0.9) switched on in 1/60 s with the lips' and the
+    teeth's contact, Newmark at 1/240 s: the lips meet and press (barrier pairs), no Newton iterate
+    of any step lets them pass through each other, the lining stays off the teeth."""
+    from face_dolfinx.physics.contact import TEETH_STIFFNESS
+    from face_dolfinx.physics.problem import Controls
+    from face_dolfinx.physics.self_contact import LipContactSettings
+    problem = FaceProblem(model, contact=ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS),
+                          lip_contact=LipContactSettings())
+    dynamic = problem.dynamics(DynamicSettings(time_step=1 / 240))
+    distances = []
+    dynamic.solver.snes.setMonitor(lambda snes, it, norm: distances.append(
+        problem.lips.min_distance(snes.getSolution().array_r, reach=1.0)))
+    rest = problem.rest_controls()
+    pucker = problem.activation_vector(model.expressions["pucker"])
+
+    def controls_at(t):
+        s = min(t * 60.0, 1.0)
+        return Controls(s * s * (3 - 2 * s) * pucker, rest.cranium, rest.jaw)
+
+    reports = dynamic.run(controls_at, [0.0, 1 / 60, 2 / 60])
+    u = problem.u.x.array
+    assert problem.lips.pairs(u) >= 10 and min(distances) > 0.0
+    assert problem.lips.penetration(u) == 0.0
+    assert problem.teeth_contact.min_gap(u) > 0.0
+    assert all(report.substeps >= 4 for report in reports[1:])
