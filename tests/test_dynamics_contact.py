@@ -133,7 +133,9 @@ def test_simulate_dynamic_moves_a_sphere_into_the_cheek(model, builtin_model_pat
     the object's contact, object.xdmf; a path starting inside the face: one message, no folder."""
     from test_contact import cheek_path
     path, out = shared_dir / "path.txt", shared_dir / "pressed"
-    centres = cheek_path(model, [-0.5, 1.0, 2.0])
+    # One path for all ranks (each rank's part of the skin gives its own normal).
+    centres = COMM.bcast(cheek_path(model, [-0.5, 1.0, 2.0, 1.0]), root=0)
+    start_inside, centres = centres[-1:], centres[:3]
     if COMM.rank == 0:
         path.write_text("\n".join(" ".join(f"{v:.6f}" for v in c) for c in centres) + "\n")
     COMM.barrier()
@@ -156,7 +158,7 @@ def test_simulate_dynamic_moves_a_sphere_into_the_cheek(model, builtin_model_pat
 
     inside = shared_dir / "inside.txt"
     if COMM.rank == 0:
-        inside.write_text("\n".join(" ".join(f"{v:.6f}" for v in c) for c in cheek_path(model, [1.0, 2.0])) + "\n")
+        inside.write_text("\n".join(" ".join(f"{v:.6f}" for v in c) for c in start_inside + centres[-1:]) + "\n")
     COMM.barrier()
     with pytest.raises(SystemExit, match=rf"{inside} \(its first pose\): the sphere of radius 15 mm .* starts inside"):
         main([*options, "--path", str(inside), "--out", str(shared_dir / "never")])
