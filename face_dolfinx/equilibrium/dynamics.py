@@ -281,7 +281,8 @@ class DynamicFace:
         return self.comm.allreduce(fem.assemble_scalar(self._kinetic_form), op=MPI.SUM)
 
     def total_energy(self) -> float:
-        """Strain energy (``FaceProblem.energy``, at the current controls) plus kinetic energy."""
+        """Strain and contact barrier energy (``FaceProblem.energy``, at the current controls) plus
+        kinetic energy."""
         return self.problem.energy() + self.kinetic_energy()
 
     @property
@@ -308,7 +309,7 @@ class DynamicFace:
         guess = (change.apply(X + start.reshape(-1, 3)) - X).reshape(-1)
         guard = problem.solver.inversion_guard
         fraction = guard.step_fraction(start, start - guess) if guard is not None else 1.0
-        if problem.lips is not None:  # ... nor let the lips pass through each other
+        if problem.lips is not None:  # nor may the start take the lips through each other
             fraction *= problem.lips.admissible_fraction(start, start + fraction * (guess - start))
         problem.u.x.array[:] = start + fraction * (guess - start)
         held = self._held_moves(old_controls, controls, change)
