@@ -4,7 +4,8 @@ bounces off it with no node ever inside, Newmark keeping the total energy (strai
 kinetic) to the step's accuracy and backward Euler never gaining; a sphere driven into the slab
 faster than the barrier alone could follow (the held move) leaves no node inside either; the
 result on two ranks is the one on one; ``simulate --dynamic --object --path``: frames, object and
-one message for a path that starts inside the skin."""
+one message for a path that starts inside the skin; the small face's lips pressed in time with the
+lips' and the teeth's contact."""
 from dataclasses import replace
 import json
 
