@@ -180,3 +180,51 @@ def test_tables_are_the_same_bytes_whatever_order_the_frames_came_in(tmp_path):
     frames = tables[0]["frames.csv"].splitlines()
     assert len(frames) == FRAMES + 1 and frames[3].endswith("mentalis,under-determined")
     assert json.loads((tmp_path / "resumed" / "run.json").read_text()) == SETTINGS
+
+
+# -- the contact settings of folders whose run.json predates them ----------------------------------
+WITHOUT_CONTACT = {**SETTINGS, "contact": False, "contact_surfaces": []}
+WITH_CONTACT = {**SETTINGS, "contact": True, "contact_surfaces": ["lips", "teeth"]}
+
+
+def test_a_record_without_contact_settings_resumes_without_contact(folder):
+    """A run.json with neither ``contact`` nor ``contact_surfaces`` (the fixture's) fitted without
+    contact: a run without contact resumes it and records them; one with contact is refused,
+    naming the folder and the difference."""
+    with pytest.raises(FitFolderError) as refused:
+        FitFolder.prepare(folder.path, WITH_CONTACT, TAKE)
+    assert str(refused.value).startswith(f"{folder.path} holds an unfinished fit with other settings (")
+    assert "contact: False there, True now; contact_surfaces: [] there, ['lips', 'teeth'] now)" in str(refused.value)
+    resumed, finished = FitFolder.prepare(folder.path, WITHOUT_CONTACT, TAKE)
+    assert not finished and resumed.settings == WITHOUT_CONTACT
+
+
+def test_a_record_with_contact_but_no_surfaces_says_nothing_of_them(tmp_path):
+    """contact on without ``contact_surfaces``: what touched what is unknown, so no resume."""
+    FitFolder.prepare(tmp_path / "fit", {**SETTINGS, "contact": True}, TAKE)
+    with pytest.raises(FitFolderError, match=r"contact_surfaces: '\(not set\)' there, \['lips', 'teeth'\] now"):
+        FitFolder.prepare(tmp_path / "fit", WITH_CONTACT, TAKE)
+
+
+@pytest.mark.parametrize("now, difference", [
+    (WITHOUT_CONTACT, "contact: True there, False now; contact_surfaces: ['lips', 'teeth'] there, [] now"),
+    ({**WITH_CONTACT, "contact_surfaces": ["lips"]}, "contact_surfaces: ['lips', 'teeth'] there, ['lips'] now"),
+    ({**SETTINGS}, "contact: True there, False now; contact_surfaces: ['lips', 'teeth'] there, [] now"),
+])
+def test_a_fit_with_contact_resumes_only_with_the_same_contact(tmp_path, now, difference):
+    path = tmp_path / "fit"
+    FitFolder.prepare(path, WITH_CONTACT, TAKE)
+    with pytest.raises(FitFolderError) as refused:
+        FitFolder.prepare(path, now, TAKE)
+    assert str(refused.value) == (f"{path} holds an unfinished fit with other settings ({difference}); "
+                                  "pass --overwrite to replace it or choose another --out")
+    assert not FitFolder.prepare(path, WITH_CONTACT, TAKE)[1]
+
+
+def test_a_record_without_krylov_resumes_without_it(tmp_path):
+    """A run.json without ``krylov`` fitted without Krylov on the old factor."""
+    path = tmp_path / "fit"
+    FitFolder.prepare(path, SETTINGS, TAKE)
+    with pytest.raises(FitFolderError, match=r"krylov: False there, True now"):
+        FitFolder.prepare(path, {**SETTINGS, "krylov": True}, TAKE)
+    assert not FitFolder.prepare(path, {**SETTINGS, "krylov": False}, TAKE)[1]

@@ -3,7 +3,7 @@
 jaw's sensitivities of the small face with the lips pressed on the lower teeth against central
 differences of re-solved equilibria (with the teeth's mixed term, and measurably wrong without it),
 the head's too; ``fit --contact``: the lips and the teeth, the lips only on a model without teeth,
-recorded in run.json; the paper mode refused with the teeth.
+recorded in run.json; the paper mode refused with the teeth, by the library and the command alike.
 """
 from dataclasses import replace
 import logging
@@ -15,7 +15,7 @@ import pytest
 from dolfinx import fem
 from dolfinx import mesh as dmesh
 
-from face_dolfinx.cli.main import parse_arguments, tracking_settings
+from face_dolfinx.cli.main import main, parse_arguments, tracking_settings
 from face_dolfinx.fitting import FitSettings
 from face_dolfinx.fitting.formulations import head_combination, make_formulation
 from face_dolfinx.model.bones import AffineMap, rotation
@@ -217,11 +217,32 @@ def test_fit_contact_holds_the_lips_on_each_other_and_on_the_teeth(model):
     assert problem.teeth_contact.stiffness == TEETH_STIFFNESS
     record = fit_record(tracker)
     assert record["contact"] is True and record["contact_surfaces"] == ["lips", "teeth"]
-    # The paper mode's affine frames cannot carry rigid teeth: refused before any solve.
-    with pytest.raises(ValueError, match="paper mode's affine cranium and jaw frames cannot carry the teeth"):
-        make_formulation(problem, FitSettings(mode="paper", fit_jaw=True))
-    with pytest.raises(SystemExit, match="--contact True: the teeth move with the exact mode's rigid bone frames"):
-        tracking_settings(parse_arguments(["fit", "take.trc", "--contact", "--mode", "paper"])[0])
+
+PAPER_WITH_TEETH = (r"the paper mode \(--mode paper\) cannot fit with the teeth \(--contact on a model with teeth\): "
+                    r"its affine cranium and jaw frames would shear them; fit with contact in exact mode")
+
+
+def test_the_paper_mode_refuses_the_teeth_once_for_the_library_and_the_command(model, builtin_model_path, shared_dir):
+    """The paper mode's affine frames cannot carry rigid teeth: the formulation refuses them (a
+    fitter of the library meets it), and the fit command meets the same refusal before it writes its
+    folder. The lips alone, or the head and jaw held, are no reason to refuse."""
+    problem = Tracker(model, tracking_settings(parse_arguments(["fit", "take.trc", "--contact"])[0])).problem
+    for fit_head, fit_jaw in ((True, True), (False, True), (True, False)):
+        with pytest.raises(ValueError, match=PAPER_WITH_TEETH):
+            make_formulation(problem, FitSettings(mode="paper", fit_head=fit_head, fit_jaw=fit_jaw))
+    assert make_formulation(problem, FitSettings(mode="paper", fit_head=False, fit_jaw=False)).name == "paper"
+    lips_only = Tracker(replace(model, teeth={}),
+                        tracking_settings(parse_arguments(["fit", "take.trc", "--contact", "--mode", "paper"])[0]))
+    assert lips_only.problem.lips is not None and lips_only.problem.teeth_contact is None
+    assert make_formulation(lips_only.problem, lips_only.settings.fit).name == "paper"
+
+    options = ["--model", str(builtin_model_path)]
+    take = shared_dir / "paper" / "take.trc"
+    assert main(["synth", *options, "--frames", "2", "--out", str(take)]) == 0
+    out = shared_dir / "paper" / "fit"
+    with pytest.raises(SystemExit, match="face-dolfinx fit: " + PAPER_WITH_TEETH):
+        main(["fit", str(take), *options, "--out", str(out), "--contact", "--mode", "paper"])
+    assert not out.exists()
 
 
 def test_fit_contact_on_a_model_without_teeth_keeps_the_lips(model, caplog):

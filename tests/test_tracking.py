@@ -3,6 +3,7 @@ import csv
 import dataclasses
 import json
 
+from mpi4py import MPI
 import numpy as np
 import pytest
 
@@ -134,3 +135,28 @@ def test_bad_part_and_marker_options_leave_nothing(builtin_model_path, shared_di
     with pytest.raises(SystemExit, match=message):
         main(["fit", str(take), *model, "--out", str(out), *options])
     assert not out.exists()
+
+
+def test_a_fit_folder_without_contact_settings_resumes_without_contact(builtin_model_path, shared_dir):
+    """A fit folder whose run.json has no ``contact`` and ``contact_surfaces`` (written before the
+    fit recorded them) resumes as a fit without contact; with --contact it is refused, naming the
+    folder and the difference, before any frame is fitted."""
+    model = ["--model", str(builtin_model_path)]
+    take = shared_dir / "old" / "take.trc"
+    assert main(["synth", *model, "--frames", "3", "--out", str(take)]) == 0
+    out = shared_dir / "old" / "fit"
+    assert main(["fit", str(take), *model, "--out", str(out), "--stop-after", "1"]) == 0
+    record = json.loads((out / "run.json").read_text())
+    MPI.COMM_WORLD.barrier()  # every rank has read it before rank 0 rewrites it
+    if MPI.COMM_WORLD.rank == 0:
+        (out / "run.json").write_text(json.dumps({k: v for k, v in record.items()
+                                                  if k not in ("contact", "contact_surfaces")}))
+    MPI.COMM_WORLD.barrier()
+    message = (rf"{out} holds an unfinished fit with other settings \(contact: False there, True now; "
+               r"contact_surfaces: \[\] there, \['lips', 'teeth'\] now\); pass --overwrite")
+    with pytest.raises(SystemExit, match=message):
+        main(["fit", str(take), *model, "--out", str(out), "--contact"])
+    assert sorted(p.name for p in (out / "frames").glob("*.json")) == ["000000.json"]
+    assert main(["fit", str(take), *model, "--out", str(out)]) == 0
+    assert not (out / "IN_PROGRESS").exists() and len(list((out / "frames").glob("*.json"))) == 3
+    assert json.loads((out / "run.json").read_text()) == record

@@ -241,6 +241,8 @@ def expression_sequence(model, expressions: list[str], seconds_each: float):
         keys.append(Controls(vector, AffineMap(), jaw))
 
     def controls_at(t: float):
+        if not expressions:  # the rest, held (an object's path may follow)
+            return keys[0]
         segment = min(int(t // seconds_each), len(expressions) - 1) if t > 0 else 0
         s = min(max(t / seconds_each - segment, 0.0), 1.0)
         return keys[segment].interpolate(keys[segment + 1], s * s * (3.0 - 2.0 * s))
@@ -250,13 +252,15 @@ def expression_sequence(model, expressions: list[str], seconds_each: float):
 
 def simulate_dynamic(model, controls_at, times, out: pathlib.Path, settings, *, degree: int = 1,
                      overwrite: bool = False, intraoral_pressure: bool = False,
-                     source: dict | None = None) -> list[dict]:
+                     source: dict | None = None, contact=None, lip_contact=None) -> list[dict]:
     """Integrate the face in time (``FaceProblem.dynamics``) from the equilibrium of
     ``controls_at(times[0])`` through ``times`` (s), one XDMF frame per time, into the results
     folder ``out`` with summary.json. A time step that cannot converge ends the run with one
     message after the folder is written with the frames before it (summary.json says where it
     stopped). ``intraoral_pressure``: the controls carry a pressure. ``source``: what drove it, for
-    summary.json."""
+    summary.json. ``contact`` (``ContactSettings``: objects, whose poses ``controls_at`` gives, and
+    teeth) and ``lip_contact`` (``LipContactSettings``) as in ``simulate``; an object's surface is
+    written as object.xdmf, and summary.json gives per frame the contact of each."""
     from face_dolfinx.equilibrium.dynamics import DynamicsError
     from face_dolfinx.files import atomic_directory
     from face_dolfinx.physics.problem import FaceProblem
@@ -265,26 +269,35 @@ def simulate_dynamic(model, controls_at, times, out: pathlib.Path, settings, *, 
     times = np.asarray(times, dtype=float)
     if times.size < 2 or np.any(np.diff(times) <= 0):
         raise SystemExit("simulate --dynamic: the frame times must increase (two or more)")
-    try:  # the model may lack what the controls need (an 'oral' surface for a pressure)
-        problem = FaceProblem(model, degree=degree, intraoral_pressure=intraoral_pressure)
+    first = controls_at(float(times[0]))
+    try:  # the model may lack what the controls need (an 'oral' surface for a pressure, teeth)
+        problem = FaceProblem(model, degree=degree, intraoral_pressure=intraoral_pressure, contact=contact,
+                              lip_contact=lip_contact)
+        if problem.contact is not None:  # an object whose first pose overlaps the skin: before any solve
+            problem.contact.set_poses(first.objects)
+            problem.contact.check_clear(problem.u.x.array)
     except ValueError as error:
         raise SystemExit(f"face-dolfinx simulate --dynamic: {error}") from None
-    first = controls_at(float(times[0]))
     problem.solve(activations=first.activations, cranium=first.cranium, jaw=first.jaw,
-                  pressure=first.pressure if intraoral_pressure else None)
+                  pressure=first.pressure if intraoral_pressure else None,
+                  objects=first.objects if problem.contact is not None else None)
     dynamic = problem.dynamics(settings)
     dynamic.start(float(times[0]))
     rows, failure = [], None
     with atomic_directory(out, comm, overwrite=overwrite) as staging:
-        with FaceWriter(problem, staging / "face.xdmf") as writer:
+        with FaceWriter(problem, staging / "face.xdmf") as writer, \
+                _ObjectSeries(problem, staging / "object.xdmf") as objects:
             def frame(index, t, report):
-                displacement = comm.allreduce(float(np.abs(problem.u.x.array).max(initial=0.0)), op=MPI.MAX)
-                rows.append(dict(frame=index, time_s=round(t, 6), substeps=report.substeps if report else 0,
-                                 newton_iterations=report.newton_iterations if report else 0,
-                                 seconds=round(report.seconds, 3) if report else 0.0,
-                                 max_displacement_mm=round(displacement, 4),
-                                 kinetic_energy_uJ=dynamic.kinetic_energy()))
+                u = problem.u.x.array
+                displacement = comm.allreduce(float(np.abs(u).max(initial=0.0)), op=MPI.MAX)
+                row = dict(frame=index, time_s=round(t, 6), substeps=report.substeps if report else 0,
+                           newton_iterations=report.newton_iterations if report else 0,
+                           seconds=round(report.seconds, 3) if report else 0.0,
+                           max_displacement_mm=round(displacement, 4), kinetic_energy_uJ=dynamic.kinetic_energy())
+                row.update(_contact_rows(problem))
+                rows.append(row)
                 writer.write(t)
+                objects.write(t)
                 if report is not None:
                     log.info("t = %.4f s: %d substep(s), Newton %d its, %.2f s, max |u| %.2f mm", t, report.substeps,
                              report.newton_iterations, report.seconds, displacement)
@@ -301,6 +314,63 @@ def simulate_dynamic(model, controls_at, times, out: pathlib.Path, settings, *, 
     if failure is not None:
         raise SystemExit(f"face-dolfinx simulate --dynamic: {failure}; {out} holds the {len(rows)} frames before it")
     return rows
+
+
+def _contact_rows(problem) -> dict:
+    """The contact of the problem's object, teeth and lips at its state, for a frame of summary.json."""
+    u, rows = problem.u.x.array, {}
+    if problem.contact is not None:
+        rows["object"] = dict(centre_mm=problem.controls.objects[0].translation.round(4).tolist(),
+                              **_contact_row(problem.contact, u))
+    if problem.teeth_contact is not None:
+        rows["teeth"] = _contact_row(problem.teeth_contact, u)
+    if problem.lips is not None:
+        rows["lips"] = dict(pairs=problem.lips.pairs(u), min_distance_mm=round(problem.lips.min_distance(u), 6))
+    return rows
+
+
+class _ObjectSeries:
+    """The problem's contact object (if any) as its own XDMF series (a fan of tetrahedra from the
+    origin of its frame over its surface, moved by a displacement field), one frame per ``write``."""
+
+    def __init__(self, problem, path: pathlib.Path):
+        from face_dolfinx.results.xdmf import XdmfSeries
+        self.problem, self.series = problem, None
+        if problem.contact is None:
+            return
+        points, triangles = problem.contact.objects[0].surface()
+        self.points = np.vstack([points, np.zeros(3)])
+        cells = np.c_[np.full(len(triangles), len(self.points) - 1), triangles]
+        if MPI.COMM_WORLD.rank == 0:
+            self.series = XdmfSeries(path, self.points, cells)
+
+    def write(self, t: float) -> None:
+        if self.series is not None:
+            pose = self.problem.controls.objects[0]
+            self.series.write(t, {"displacement": pose.apply(self.points) - self.points}, {})
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, error, trace):
+        if self.series is not None:
+            self.series.abort() if kind is not None else self.series.close()
+        return False
+
+
+def object_path_controls(controls_at, start: float, poses, interval: float, hold: float):
+    """``controls_at(t)`` with the contact object at the first of ``poses`` until ``start`` (s),
+    then along them, one every ``interval`` s (a straight line between two), then at the last one
+    for ``hold`` s; and the duration."""
+    from dataclasses import replace
+
+    def at(t: float):
+        position = min(max((t - start) / interval, 0.0), len(poses) - 1.0)
+        k = min(int(position), len(poses) - 2)
+        pose = poses[0] if len(poses) == 1 else poses[k].geodesic(poses[k + 1], position - k)
+        return replace(controls_at(t), objects=(pose,))
+
+    return at, start + (len(poses) - 1) * interval + hold
 
 
 def dynamic_settings(args):
@@ -717,6 +787,7 @@ def fit(model, args) -> None:
     from face_dolfinx.alignment.placement import place_on_model
     from face_dolfinx.capture import chunk_ranges, read_capture
     from face_dolfinx.capture.synthetic import truth_path
+    from face_dolfinx.fitting.formulations import check_contact
     from face_dolfinx.results.folder import FitFolderError
     from face_dolfinx.tracking import Tracker
     comm = MPI.COMM_WORLD
@@ -735,6 +806,10 @@ def fit(model, args) -> None:
     if args.chunk is not None and not 0 <= args.chunk < chunks:
         raise SystemExit(f"--chunk {args.chunk}: the take has chunks 0..{chunks - 1}")
     tracker = Tracker(model, settings, rank_groups=1 if args.chunk is not None else min(chunks, comm.size))
+    try:  # a formulation that cannot carry the contact: refused before the folder exists
+        check_contact(tracker.problem, settings.fit)
+    except ValueError as error:
+        raise SystemExit(f"face-dolfinx fit: {error}") from None
     correspondence = str(pathlib.Path(args.correspondence).resolve()) if args.correspondence else None
     try:
         folder = tracker.open_folder(args.out, capture, placement, chunks=args.chunks, overwrite=args.overwrite,
@@ -1263,9 +1338,11 @@ def _main(argv=None) -> int:
 
 
 def _simulate_dynamic_expressions(model, args, out: pathlib.Path) -> int:
-    """``simulate --dynamic``: the named expressions played in time (``simulate_dynamic``)."""
-    if args.object or args.path or args.coarse:
-        raise SystemExit("simulate --dynamic: --object, --path and --coarse are for quasistatic simulation")
+    """``simulate --dynamic``: the named expressions played in time (``simulate_dynamic``); with
+    ``--object``/``--path`` the object then moves along its path, one pose per frame, and stays at
+    the last one for ``--expression-time``; ``--contact``: the lips and the teeth."""
+    if args.coarse:
+        raise SystemExit("simulate --dynamic: --coarse is for quasistatic simulation")
     settings = dynamic_settings(args)
     if not (math.isfinite(args.expression_time) and args.expression_time > 0):
         raise SystemExit(f"simulate --dynamic: --expression-time {args.expression_time}: give a positive number of seconds")
@@ -1274,9 +1351,17 @@ def _simulate_dynamic_expressions(model, args, out: pathlib.Path) -> int:
     for name in args.expressions:  # fail before any work
         _expression_controls(model, name)
     controls_at, duration = expression_sequence(model, args.expressions, args.expression_time)
+    contact = _object_from_args(args)
+    source = dict(expressions=args.expressions, expression_time_s=args.expression_time)
+    if contact is not None and contact[1]:
+        first = math.ceil(duration * args.frame_rate - 1e-9) / args.frame_rate  # each pose on a frame
+        controls_at, duration = object_path_controls(controls_at, first, contact[1], 1.0 / args.frame_rate,
+                                                     args.expression_time)
+        source.update(object=args.object, path=args.path)
     times = np.arange(0.0, duration + 0.5 / args.frame_rate, 1.0 / args.frame_rate)
     rows = simulate_dynamic(model, controls_at, times, out, settings, degree=args.degree, overwrite=args.overwrite,
-                            source=dict(expressions=args.expressions, expression_time_s=args.expression_time))
+                            source=source, contact=contact[0] if contact is not None else None,
+                            lip_contact=_lip_contact(args))
     if MPI.COMM_WORLD.rank == 0:
         print(f"results: {out.resolve()} ({len(rows)} frames; face.xdmf for ParaView)")
     return 0

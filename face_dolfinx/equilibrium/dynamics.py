@@ -26,8 +26,20 @@ A step whose Newton fails is halved (and grows back after successes), down to
 ``time_step / 2^max_halvings``; beyond that ``DynamicsError`` names the time and the state is left at
 the last converged step (frames already handed to ``on_frame`` are kept).
 
-Contact objects are not integrated in time (their barrier would need its own time step control):
-``FaceProblem.dynamics`` refuses a problem with contact.
+Contact (a problem's rigid objects, its teeth, the lips on each other; docs/contact.md) is part of
+the incremental potential: the barrier energy adds to it, its gradient to the step's residual and
+its Hessian to the tangent, and its collision-free step bound shortens every Newton step next to
+the inversion guard's, so no iterate of any time step penetrates. The barrier is conservative:
+with Newmark the energy (strain, barrier and kinetic) is kept to the step's accuracy while the
+flesh bounces on an object, backward Euler never gains. The objects and the teeth stand at their
+poses of the step's end time. An object that moves into the flesh within a step (or teeth that
+close on the lining) would leave the start inside it, where the barrier is infinite: the step then
+starts from the quasistatic solve's held move (``ContactPotential.move_to``: the surface pushed out
+of the new pose, the dent held while the flesh follows it, by this integrator's Newton, inertia
+included), after which Newton on the incremental potential releases the held nodes. The held move
+only makes an admissible start: the step's result is the minimiser of the incremental potential
+(strongly convex at these steps, c0 M dominating) whatever the start. Where the poses' change
+leaves every node most of its gap (``needs_held_move``), the barrier alone pushes the flesh.
 """
 from dataclasses import dataclass
 import logging
@@ -40,6 +52,8 @@ from petsc4py import PETSc
 import numpy as np
 from dolfinx import fem
 import dolfinx.fem.petsc as fem_petsc
+
+from face_dolfinx.physics.contact import CCD_KEEP, PUSH_GAP
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +102,17 @@ class DynamicSettings:
     @property
     def damped(self) -> bool:
         return self.mass_damping > 0 or self.viscosity > 0
+
+
+def needs_held_move(contact, displacement: np.ndarray, old_poses, new_poses) -> bool:
+    """Whether moving ``contact``'s objects from ``old_poses`` to ``new_poses`` takes more of some
+    node's gap than a collision-free Newton step may (``CCD_KEEP``) and leaves it closer than
+    ``PUSH_GAP`` dhat (a node inside counts): then the barrier alone would start a step inside an
+    object or against it, and the step starts from the held move (module docstring). The same on
+    every rank."""
+    now = contact.gaps(displacement, old_poses)
+    moved = contact.gaps(displacement, new_poses)
+    return bool(((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * contact.dhat)).any())
 
 
 class TimeLevels:
@@ -155,6 +180,7 @@ class DynamicFace:
         self._substep = settings.time_step
         self._mass_form, self._kinetic_form = mass_form, kinetic_energy_form
         self._begun = False
+        self.held_moves = 0  # steps started from the held move so far, per object or teeth (a cost counter)
         self.start()
 
     # -- state -------------------------------------------------------------------------------
@@ -195,23 +221,28 @@ class DynamicFace:
         self._balance_acceleration()
         self._begun = True
 
-    def _assembled(self, form) -> PETSc.Vec:
+    def _assembled_residual(self) -> PETSc.Vec:
+        """The step's residual at the unknown, the contact terms' gradients included, zero on the
+        Dirichlet dofs."""
+        form = self.solver.residual_form
         vector = fem_petsc.create_vector(form)
         with vector.localForm() as local:
             local.set(0.0)
         fem_petsc.assemble_vector(vector, form)
         vector.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        for term in self.solver.energy_terms:
+            term.add_gradient(self.problem.u.vector, vector)
         fem_petsc.set_bc(vector, self.problem.bcs, scale=0.0)
         return vector
 
     def _balance_acceleration(self) -> None:
         """The free dofs' acceleration from M a = -(R(u) + C v), the bones' acceleration (set) on
-        the right-hand side (the residual form of a step with every scheme coefficient zero but
-        d1 = 1 is R(u) + C v)."""
+        the right-hand side (the residual of a step with every scheme coefficient zero but d1 = 1 is
+        R(u) + C v; R includes the contact forces)."""
         saved = self.levels.values.copy()
         for constant, value in zip(self.levels.coefficients, (0.0, 0.0, 0.0, 0.0, 1.0, 0.0)):
             constant.value = value
-        force = self._assembled(self.solver.residual_form)
+        force = self._assembled_residual()
         for constant, value in zip(self.levels.coefficients, saved):
             constant.value = value
         force.scale(-1.0)
@@ -250,7 +281,8 @@ class DynamicFace:
         return self.comm.allreduce(fem.assemble_scalar(self._kinetic_form), op=MPI.SUM)
 
     def total_energy(self) -> float:
-        """Strain energy (``FaceProblem.energy``, at the current controls) plus kinetic energy."""
+        """Strain and contact barrier energy (``FaceProblem.energy``, at the current controls) plus
+        kinetic energy."""
         return self.problem.energy() + self.kinetic_energy()
 
     @property
@@ -277,16 +309,40 @@ class DynamicFace:
         guess = (change.apply(X + start.reshape(-1, 3)) - X).reshape(-1)
         guard = problem.solver.inversion_guard
         fraction = guard.step_fraction(start, start - guess) if guard is not None else 1.0
+        if problem.lips is not None:  # nor may the start take the lips through each other
+            fraction *= problem.lips.admissible_fraction(start, start + fraction * (guess - start))
         problem.u.x.array[:] = start + fraction * (guess - start)
+        held = self._held_moves(old_controls, controls, change)
         problem.set_controls(controls)
         self.solver.controls_changed()  # the time levels changed (coefficients of its forms)
-        ok, iterations, why = self.solver.newton()
+        iterations = 0
+        for contact, poses in held:
+            iterations += contact.move_to(poses, self.solver)
+            self.held_moves += 1
+        ok, newton, why = self.solver.newton()
+        iterations += newton
         if ok:
             levels.accept(problem.u.x.array)
         else:
             problem.u.x.array[:] = start
             problem.set_controls(old_controls)
         return ok, iterations, why
+
+    def _held_moves(self, before, controls, change) -> list:
+        """(contact, new poses) of the problem's objects and teeth whose move from ``before`` to
+        ``controls`` needs the held move at the start now in the unknown (``needs_held_move``);
+        the teeth's old poses carried along the cranium's ``change``, as the start was."""
+        problem, held = self.problem, []
+        displacement = problem.u.x.array
+        if problem.contact is not None and needs_held_move(problem.contact, displacement, before.objects,
+                                                           controls.objects):
+            held.append((problem.contact, controls.objects))
+        if problem.teeth_contact is not None:
+            old = tuple(change.compose(pose) for pose in problem.teeth_poses(before))
+            new = problem.teeth_poses(controls)
+            if needs_held_move(problem.teeth_contact, displacement, old, new):
+                held.append((problem.teeth_contact, new))
+        return held
 
     def advance(self, end: float, controls_at: Callable[[float], object]) -> AdvanceReport:
         """Integrate to time ``end`` (s) with the controls ``controls_at(t)`` (a ``Controls``) at

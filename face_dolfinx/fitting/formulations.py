@@ -265,10 +265,7 @@ class PaperFormulation(Formulation):
 
     def __init__(self, problem, settings):
         super().__init__(problem, settings)
-        if problem.teeth_contact is not None and (settings.fit_head or settings.fit_jaw):
-            # The teeth are rigid objects placed by the bone frames: an affine frame would shear them.
-            raise ValueError("the paper mode's affine cranium and jaw frames cannot carry the teeth (rigid contact "
-                             "objects): fit with the teeth in exact mode, or without the teeth")
+        check_contact(problem, settings)
         self.rho_start = self.rho_final = 0.0
 
     def initial_state(self) -> ControlState:
@@ -378,6 +375,16 @@ class PaperFormulation(Formulation):
 
 
 FORMULATIONS = {formulation.name: formulation for formulation in (ExactFormulation, PaperFormulation)}
+
+
+def check_contact(problem, settings) -> None:
+    """Refuse, before any solve, a fit whose formulation cannot carry the contact of ``problem``:
+    the paper mode fitting the head or the jaw with the teeth, which are rigid objects placed by
+    the bone frames (an affine frame would shear them). ``PaperFormulation`` calls it, so every
+    fitter meets it; the fit command calls it before it writes its folder."""
+    if settings.mode == "paper" and problem.teeth_contact is not None and (settings.fit_head or settings.fit_jaw):
+        raise ValueError("the paper mode (--mode paper) cannot fit with the teeth (--contact on a model with "
+                         "teeth): its affine cranium and jaw frames would shear them; fit with contact in exact mode")
 
 
 def make_formulation(problem, settings) -> Formulation:

@@ -308,13 +308,11 @@ class FaceProblem:
         """A time integrator of this face (``face_dolfinx.equilibrium.dynamics.DynamicFace``): the
         residual with inertia and damping (``forms.Inertia``, ``forms.ViscousDamping``) of
         ``settings`` (``DynamicSettings``; default: tissue density, no damping, Newmark's average
-        acceleration), its own Newton solver with this problem's options and inversion guard,
+        acceleration), its own Newton solver with this problem's options, inversion guard and
+        contact terms (objects, teeth, lips: their barrier joins the incremental potential),
         starting from the current displacement and controls."""
         from face_dolfinx.equilibrium.dynamics import DynamicFace, DynamicSettings, TimeLevels
         settings = settings if settings is not None else DynamicSettings()
-        if self.contact is not None or self.teeth_contact is not None or self.lips is not None:
-            raise ValueError("dynamic re-simulation with contact (objects, teeth or the lips) is not supported: the barrier "
-                             "has no time step control; simulate without --object/--contact")
         levels = TimeLevels(self.V)
         # rho u.v integrated exactly for degree p: 2p.
         dx = ufl.dx(domain=self.mesh, metadata={"quadrature_degree": 2 * self.degree})
@@ -327,7 +325,8 @@ class FaceProblem:
         solver = QuasistaticSolver(residual, self.u, self.bcs, tangent=self._tangent_structure,
                                    petsc_options=self._petsc_options,
                                    inversion_guard=self.solver.inversion_guard,
-                                   step_tolerance=self.solver.step_tolerance, keep_packed_coefficients=True)
+                                   step_tolerance=self.solver.step_tolerance, keep_packed_coefficients=True,
+                                   energy_terms=self.solver.energy_terms)
         mass = compile_form(inertia.virtual_work(ufl.TrialFunction(self.V), v) * dx)
         kinetic_energy = compile_form(inertia.kinetic_energy(levels.velocity) * dx)
         return DynamicFace(self, settings, solver, levels, mass, kinetic_energy)

@@ -93,9 +93,30 @@ def _from_nullable(values: list, width: int | None = None) -> np.ndarray:
     return np.array([[np.nan] * width if v is None else v for v in values], dtype=float).reshape(-1, width)
 
 
+# Settings that a run.json lacks when its fit ran before the software recorded them. A record
+# without "contact" fitted without contact, one without "krylov" without Krylov; one without
+# "contact_surfaces" and with no contact touched nothing (with contact on it does not say what
+# touched what: it stays unset).
+ABSENT_SETTINGS = {"contact": False, "krylov": False, "contact_surfaces": []}
+
+
+def _completed(record: dict, other: dict) -> dict:
+    """``record`` with the settings that ``other`` has and it lacks, as far as their absence tells
+    them (``ABSENT_SETTINGS``)."""
+    record = dict(record)
+    for key in ("contact", "krylov"):
+        if key in other:
+            record.setdefault(key, ABSENT_SETTINGS[key])
+    if "contact_surfaces" in other and record.get("contact") is False:
+        record.setdefault("contact_surfaces", ABSENT_SETTINGS["contact_surfaces"])
+    return record
+
+
 def settings_differences(before: dict, now: dict) -> list[str]:
-    """'name: before -> now' for every setting that differs (JSON values compared)."""
+    """'name: before there, now now' for every setting that differs (JSON values compared); the
+    settings one side lacks are what their absence means (``_completed``)."""
     before, now = json.loads(json.dumps(before)), json.loads(json.dumps(now))
+    before, now = _completed(before, now), _completed(now, before)
     return [f"{key}: {before.get(key, '(not set)')!r} there, {now.get(key, '(not set)')!r} now"
             for key in sorted(set(before) | set(now)) if before.get(key) != now.get(key)]
 

@@ -82,9 +82,6 @@ class TrackingSettings:
             ("line_search_iterations", self.line_search_iterations >= 1, "give 1 or more"),
             ("krylov", self.reuse_factorization or not self.krylov_on_old_factor,
              "Krylov on the old factor needs reuse_factorization (a factor kept across iterations)"),
-            ("contact", not (self.contact and self.fit.mode == "paper" and (self.fit.fit_head or self.fit.fit_jaw)),
-             "the teeth move with the exact mode's rigid bone frames, not the paper mode's affine ones: "
-             "fit with contact in exact mode"),
         )
         for key, valid, requirement in checks:
             if not valid:
