@@ -27,6 +27,22 @@ reach of the surface. The bound is one of the distance: it bounds the gap of a p
 surface, the only points the contact terms evaluate (their states are kept outside every object
 by the collision-free steps; ``ContactPotential.gaps`` and ``check_clear`` ask for exact gaps).
 
+A smooth barrier: the gap to the nearest triangle has a gradient that jumps where the nearest
+triangle changes across a concave edge or vertex, and the barrier of it with it; a node pressed
+onto such an edge sees its force turn by the edge's angle as it crosses. The barrier of a triangle
+mesh is instead the sum over its features within dhat of a node, triangles and vertices with
+sign +1 and edges with -1, of b(distance to the closed feature) (``barrier_terms``). Each term is C1
+in the node's position (the distance to a closed convex set is C1 off it; b is C2 at dhat), so the
+sum is. By the layer-cake form b(d) = integral over r in (d, dhat) of -b'(r), the sum is the
+integral of -b'(r) times the Euler characteristic of the part of the surface within r of the node
+(inclusion-exclusion over the closed triangles that part meets, whose intersections are the edges
+and vertices): where that part is one disc, as on every flat or convex piece, the barrier is
+b(distance to the surface) exactly; next to a concave edge, where a ball can touch the two
+triangles but not their edge, both push (a plain sum over point-triangle pairs counts a node over a
+vertex of six triangles six times, which the edges' terms cancel here). Its Hessian per term is
+that of the distance to one feature: 0 over a triangle's face, (I - n n^T - e e^T) / d next to an
+edge of direction e and (I - n n^T) / d next to a vertex.
+
 ``first_contact`` bounds the time at which a point moving along a straight step first comes
 within a clearance of the surface, from below: per candidate triangle the larger of the time to
 reach the clearance from the triangle's plane (the distance to a triangle is at least that to its
@@ -174,7 +190,7 @@ class TriangleMesh:
 
     def local_features(self, points: np.ndarray, within: float):
         """In the object's frame: the barrier's terms of the points within ``within`` of the
-        surface (module docstring, "A smooth barrier"): one per (point, triangle), (point, edge)
+        surface (module docstring, "a smooth barrier"): one per (point, triangle), (point, edge)
         and (point, vertex) pair closer than ``within``, as the point's index, the term's sign (+1
         for triangles and vertices, -1 for edges), the distance to the feature (signed by the
         point's side of the surface), and its unit gradient and (k, 3, 3) Hessian. A point inside
