@@ -549,18 +549,23 @@ class ContactPotential:
 
     def carry(self, poses, solver, reach: float) -> int:
         """Put the objects at ``poses``, carrying along the surface nodes that rest on them: every
-        node within ``reach`` (mm) of an object at its present pose is held, for one Newton solve
-        of ``solver``, where the object's move from its present pose to its new one takes it, and
-        left out of the barrier meanwhile. The held nodes keep their gaps to the object they rest
-        on, the flesh follows them and the bones (whose Dirichlet values the solve reaches as
-        well), and the solve that follows releases them. A jaw opening with the lining left behind
-        would otherwise drag the lining along the teeth in collision-limited steps that also cut
-        the bones' motion short. Returns the Newton iterations it took."""
+        node within ``reach`` (mm) of an object at its present pose, and every farther one that the
+        object at its new pose would leave closer than PUSH_GAP * dhat (the teeth closing onto the
+        lining in front of them), is held, for one Newton solve of ``solver``, where the object's
+        move from its present pose to its new one takes it, and left out of the barrier meanwhile.
+        The held nodes keep their gaps to the object they rest on, the flesh follows them and the
+        bones (whose Dirichlet values the solve reaches as well), and the solve that follows
+        releases them. A jaw opening with the lining left behind would otherwise drag the lining
+        along the teeth in collision-limited steps that also cut the bones' motion short; a node
+        the teeth overrun would be inside them. Returns the Newton iterations it took."""
         u = solver.unknown
         x = self.positions(u.x.array)
         gaps = self.gaps(u.x.array, within=reach)
-        nearest, closest = gaps.argmin(axis=0), gaps.min(axis=0)
-        held = closest < reach
+        # A node farther than ``reach`` that an object's new pose overruns goes with that object.
+        overrun = self.gaps(u.x.array, poses, within=PUSH_GAP * self.dhat) < PUSH_GAP * self.dhat
+        carried = (gaps < reach) | overrun
+        gaps[~carried] = np.inf
+        nearest, held = gaps.argmin(axis=0), carried.any(axis=0)
         target = x.copy()
         for k, (old, new) in enumerate(zip(self.poses, poses)):
             chosen = held & (nearest == k)
