@@ -1,6 +1,8 @@
 """Rigid triangle-mesh contact objects (face_dolfinx.physics.rigid_mesh): distances, gradients and
 Hessians against the IPC Toolkit's point-triangle ones, signs against analytic solids, the barrier's
-gradient and Hessian against differences of its energy, no node inside at any Newton iterate, the
+gradient and Hessian against differences of its energy, the smooth barrier over the triangles,
+edges and vertices (that of the distance on convex surfaces, against every feature, its derivatives
+next to a concave edge and vertex), no node inside at any Newton iterate, the
 tessellated sphere against the analytic one, files of every format, bad input, and
 ``run.py simulate --object mesh:FILE``.
 """
