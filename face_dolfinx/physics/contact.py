@@ -13,8 +13,10 @@ node's share of the rest surface area so that it is a surface pressure that conv
     E_c = stiffness / dhat * sum_i A_i b(g_i),   p(g) = -stiffness b'(g) / dhat  (kPa)
 
 ``stiffness`` is thus about the contact pressure at g = dhat / 2 (p = 1.19 stiffness there); the
-pressure grows without bound as g -> 0. For a sphere and a half-space the gap of a node to an
-object is analytic, so the barrier couples each node only with itself: the Hessian is 3x3 blocks
+pressure grows without bound as g -> 0. For a triangle mesh (``rigid_mesh.TriangleMesh``) b(g_i)
+is a signed sum of b over the triangles, edges and vertices within dhat of the node, smooth where
+the nearest triangle changes. For a sphere and a half-space the gap of a node to an object is
+analytic, so the barrier couples each node only with itself: the Hessian is 3x3 blocks
 on the diagonal, inside the finite-element sparsity, and symmetric (Cholesky still works). The
 continuous collision detection is analytic too: ``step_fraction`` bounds a Newton step so that no
 node loses more than ``CCD_KEEP`` of its gap, anywhere along the line-search segment.
