@@ -1,6 +1,8 @@
 """Rigid triangle-mesh contact objects (face_dolfinx.physics.rigid_mesh): distances, gradients and
 Hessians against the IPC Toolkit's point-triangle ones, signs against analytic solids, the barrier's
-gradient and Hessian against differences of its energy, no node inside at any Newton iterate, the
+gradient and Hessian against differences of its energy, the smooth barrier over the triangles,
+edges and vertices (that of the distance on convex surfaces, against every feature, its derivatives
+next to a concave edge and vertex), no node inside at any Newton iterate, the
 tessellated sphere against the analytic one, files of every format, bad input, and
 ``run.py simulate --object mesh:FILE``.
 """
@@ -12,7 +14,7 @@ import pytest
 import ipctk
 from face_dolfinx.alignment.surface import closest_points
 from face_dolfinx.model.bones import AffineMap, rotation
-from face_dolfinx.physics.contact import ContactSettings, Sphere
+from face_dolfinx.physics.contact import ContactSettings, Sphere, barrier, barrier_derivatives
 from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.model.surface_file import read_triangle_surface
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
@@ -206,3 +208,99 @@ def test_simulate_moves_a_mesh_along_a_path(model, shared_dir):
     with pytest.raises(SystemExit, match=r"inside.txt .its first pose.: the triangle surface .*ball.ply .* starts inside the skin"):
         main(["simulate", "--model", model_path, "--object", f"mesh:{mesh_file}", "--path", str(inside),
               "--out", str(shared_dir / "never"), "--no-render"])
+
+
+def dented_box(depth=0.1):
+    """[0, 4] x [0, 4] x [-3, 0] with the top's centre pushed ``depth`` down: a concave vertex at
+    (2, 2, -depth) and four concave edges to the top's corners (2.9 degrees for 0.1 mm, about the
+    built-in teeth's steepest)."""
+    points = np.array([[0, 0, 0], [4, 0, 0], [4, 4, 0], [0, 4, 0], [0, 0, -3], [4, 0, -3], [4, 4, -3], [0, 4, -3],
+                       [2, 2, -depth]], dtype=float)
+    triangles = [(8, 0, 1), (8, 1, 2), (8, 2, 3), (8, 3, 0), (4, 6, 5), (4, 7, 6), (0, 4, 5), (0, 5, 1), (1, 5, 6),
+                 (1, 6, 2), (2, 6, 7), (2, 7, 3), (3, 7, 4), (3, 4, 0)]
+    return TriangleMesh(points, np.array(triangles), name="dented box")
+
+
+def smooth_barrier(mesh, x, dhat=0.5):
+    """Per point: the barrier of ``mesh``'s terms summed (``barrier_terms``), its gradient and its
+    Hessian."""
+    which, sign, d, n, H = mesh.barrier_terms(x, AffineMap(), within=dhat)
+    first, second = barrier_derivatives(d, dhat)
+    energy, gradient, hessian = np.zeros(len(x)), np.zeros((len(x), 3)), np.zeros((len(x), 3, 3))
+    np.add.at(energy, which, sign * barrier(d, dhat))
+    np.add.at(gradient, which, (sign * first)[:, None] * n)
+    np.add.at(hessian, which, sign[:, None, None] * (second[:, None, None] * n[:, :, None] * n[:, None, :]
+                                                   + first[:, None, None] * H))
+    return energy, gradient, hessian
+
+
+def test_smooth_barrier_on_convex_surfaces_is_that_of_the_nearest_distance():
+    """On a convex surface the terms of the edges cancel the duplicates of the triangles and
+    vertices: the barrier is b of the distance to the surface, its gradient b' n."""
+    rng = np.random.default_rng(4)
+    for mesh in (TriangleMesh(*ICOSPHERE), TriangleMesh(*box())):
+        centre = mesh.points.mean(axis=0)
+        directions = rng.normal(size=(2000, 3))
+        directions /= np.linalg.norm(directions, axis=1)[:, None]
+        # Points outside, from the surface's farthest point out to 0.6 mm beyond it.
+        reach = np.linalg.norm(mesh.points - centre, axis=1).max()
+        x = centre + directions * rng.uniform(0.3 * reach, reach + 0.6, size=(2000, 1))
+        gap, normal, _ = mesh.gaps(x, AffineMap())
+        x, gap, normal = x[gap > 0.01], gap[gap > 0.01], normal[gap > 0.01]
+        energy, gradient, _ = smooth_barrier(mesh, x)
+        assert (gap < 0.5).sum() > 100
+        assert np.abs(energy - barrier(gap, 0.5)).max() <= 1e-12 * np.abs(energy).max()
+        expected = barrier_derivatives(gap, 0.5)[0][:, None] * normal
+        assert np.abs(gradient - expected).max() <= 1e-10 * np.abs(expected).max()
+
+
+def test_smooth_barrier_against_every_feature():
+    """The terms of points near the dented box's concave edges and vertex against the sum over all
+    its triangles, edges and vertices of ipctk's point-triangle, point-edge and point-point
+    distances (signs +1, -1, +1)."""
+    mesh = dented_box()
+    rng = np.random.default_rng(5)
+    x = np.column_stack([rng.uniform(0.5, 3.5, 300), rng.uniform(0.5, 3.5, 300), rng.uniform(0.02, 0.6, 300)])
+    energy = smooth_barrier(mesh, x)[0]
+    edges = np.unique(np.sort(np.concatenate([mesh.triangles[:, [0, 1]], mesh.triangles[:, [1, 2]],
+                                              mesh.triangles[:, [2, 0]]]), axis=1), axis=0)
+    for point, value in zip(x, energy):
+        squared = ([(1.0, ipctk.point_triangle_distance(point, *corners)) for corners in mesh.corners]
+                   + [(-1.0, ipctk.point_edge_distance(point, *mesh.points[e])) for e in edges]
+                   + [(1.0, ipctk.point_point_distance(point, v)) for v in mesh.points])
+        expected = sum(sign * barrier(np.sqrt(s), 0.5) for sign, s in squared)
+        assert value == pytest.approx(expected, rel=1e-12, abs=1e-14)
+    assert (energy > 0.0).sum() > 200
+
+
+def test_smooth_barrier_derivatives_at_a_concave_edge_and_vertex():
+    """Near the dented box's concave edges and vertex, where the nearest triangle changes and the
+    gradient of b(distance to the surface) jumps: the smooth barrier's gradient and Hessian against
+    central differences of its energy and gradient, and its gradient continuous across an edge."""
+    mesh = dented_box()
+    rng = np.random.default_rng(6)
+    # Above the concave vertex, above points of the concave edges, and around them.
+    on_edges = np.array([[2.0, 2.0, 0.0], [1.0, 1.0, 0.0], [3.0, 1.0, 0.0], [1.5, 2.5, 0.0]])
+    x = np.vstack([on_edges + [0.0, 0.0, 0.2], rng.uniform((1.5, 1.5, 0.05), (2.5, 2.5, 0.45), size=(60, 3))])
+    _, gradient, hessian = smooth_barrier(mesh, x)
+    h = 1e-6
+    for k in range(3):
+        step = np.zeros(3)
+        step[k] = h
+        energy_difference = (smooth_barrier(mesh, x + step)[0] - smooth_barrier(mesh, x - step)[0]) / (2 * h)
+        gradient_difference = (smooth_barrier(mesh, x + step)[1] - smooth_barrier(mesh, x - step)[1]) / (2 * h)
+        assert np.abs(energy_difference - gradient[:, k]).max() <= 1e-6 * np.abs(gradient).max()
+        assert np.abs(gradient_difference - hessian[:, :, k]).max() <= 1e-5 * np.abs(hessian).max()
+    # Across the edge from the vertex to (0, 0, 0) at 0.2 mm: b(distance)'s gradient turns by the
+    # edge's angle there, the smooth barrier's changes in proportion to the step.
+    across = np.column_stack([1.0 + np.linspace(-0.05, 0.05, 1001), 1.0 - np.linspace(-0.05, 0.05, 1001),
+                              np.full(1001, 0.2)])
+    gap, normal, _ = mesh.gaps(across, AffineMap())
+    nearest = barrier_derivatives(gap, 0.5)[0][:, None] * normal
+    smooth, curvature = smooth_barrier(mesh, across)[1:]
+    jump = np.linalg.norm(np.diff(nearest, axis=0), axis=1).max()
+    change = np.linalg.norm(np.diff(smooth, axis=0), axis=1).max()
+    spacing = np.linalg.norm(across[1] - across[0])
+    assert jump > 0.05 * np.linalg.norm(nearest, axis=1).max()  # the nearest triangle's gradient jumps
+    assert change <= 1.01 * spacing * np.linalg.norm(curvature, ord=2, axis=(1, 2)).max()
+    assert change < 0.05 * jump

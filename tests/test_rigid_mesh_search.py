@@ -1,7 +1,8 @@
 """The candidate search of ``TriangleMesh`` (face_dolfinx.physics.rigid_mesh) on a surface of small
 and long skinny triangles: gaps, normals and Hessians against brute force over every triangle (and
-the IPC Toolkit's Hessians), the distance bounds and the cut-off of ``gaps(within=...)``, and the
-collision-free step bound next to the skinny triangles.
+the IPC Toolkit's Hessians), the distance bounds and the cut-off of ``gaps(within=...)``, the
+smooth barrier's terms against a sum over every feature, and the collision-free step bound next to
+the skinny triangles.
 """
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ import pytest
 import ipctk
 from face_dolfinx.alignment.surface import closest_points
 from face_dolfinx.model.bones import AffineMap, rotation
-from face_dolfinx.physics.contact import Sphere
+from face_dolfinx.physics.contact import Sphere, barrier
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
 from test_contact_mesh import box
 
@@ -134,3 +135,28 @@ def test_collision_free_step_bound_next_to_skinny_triangles(ball_and_rod):
     slide = mesh.first_contact(np.array([[3.25, -5.5, top + 0.01]]), np.array([[0.0, 2.0, 0.0]]), AffineMap(),
                                np.array([0.002]))
     assert slide[0] >= 1.0
+
+
+def test_barrier_terms_against_every_feature(ball_and_rod):
+    """The smooth barrier's terms from the sampled search against a sum over every triangle, edge
+    and vertex (brute force), for points near the ball and along the rod's skinny triangles."""
+    mesh, dhat = ball_and_rod, 0.3
+    local = near_and_far(mesh, 200, 7)
+    local = local[~inside(local)]
+    which, sign, distance, _, _ = mesh.barrier_terms(POSE.apply(local), POSE, within=dhat)
+    energy = np.zeros(len(local))
+    np.add.at(energy, which, sign * barrier(distance, dhat))
+    a, b, c = mesh.corners[:, 0], mesh.corners[:, 1], mesh.corners[:, 2]
+    edges = np.unique(np.sort(np.concatenate([mesh.triangles[:, [0, 1]], mesh.triangles[:, [1, 2]],
+                                              mesh.triangles[:, [2, 0]]]), axis=1), axis=0)
+    start, along = mesh.points[edges[:, 0]], mesh.points[edges[:, 1]] - mesh.points[edges[:, 0]]
+    expected = np.empty(len(local))
+    for i, x in enumerate(local):
+        to_triangles = np.linalg.norm(x - closest_points(np.broadcast_to(x, a.shape), a, b, c)[0], axis=1)
+        t = np.clip(np.einsum("ij,ij->i", x - start, along) / np.einsum("ij,ij->i", along, along), 0.0, 1.0)
+        to_edges = np.linalg.norm(x - start - t[:, None] * along, axis=1)
+        to_vertices = np.linalg.norm(x - mesh.points, axis=1)
+        expected[i] = (barrier(to_triangles, dhat).sum() - barrier(to_edges, dhat).sum()
+                       + barrier(to_vertices, dhat).sum())
+    assert (expected > 0.0).sum() > 50
+    assert np.abs(energy - expected).max() <= 1e-10 * np.abs(expected).max()

@@ -15,8 +15,10 @@ node's share of the rest surface area so that it is a surface pressure that conv
     E_c = stiffness / dhat * sum_i A_i b(g_i),   p(g) = -stiffness b'(g) / dhat  (kPa)
 
 ``stiffness`` is thus about the contact pressure at g = dhat / 2 (p = 1.19 stiffness there); the
-pressure grows without bound as g -> 0. For a sphere and a half-space the gap of a node to an
-object is analytic, so the barrier couples each node only with itself: the Hessian is 3x3 blocks
+pressure grows without bound as g -> 0. For a triangle mesh (``rigid_mesh.TriangleMesh``) b(g_i)
+is a signed sum of b over the triangles, edges and vertices within dhat of the node, smooth where
+the nearest triangle changes. For a sphere and a half-space the gap of a node to an object is
+analytic, so the barrier couples each node only with itself: the Hessian is 3x3 blocks
 on the diagonal, inside the finite-element sparsity, and symmetric (Cholesky still works). The
 continuous collision detection is analytic too: ``step_fraction`` bounds a Newton step so that no
 node loses more than ``CCD_KEEP`` of its gap, anywhere along the line-search segment.
@@ -35,6 +37,7 @@ import numpy as np
 from dolfinx import fem
 
 from face_dolfinx.model.bones import AffineMap
+from face_dolfinx.physics.rigid_mesh import TriangleMesh
 
 # Along a Newton step or line-search segment no node may lose more than this fraction of its gap
 # (IPC's conservative rescaling of the time of impact, 0.8, is the same bound for a plane).
@@ -404,10 +407,13 @@ class ContactPotential:
 
     # -- the solver's energy-term interface ---------------------------------------------------
     def _terms(self, displacement: np.ndarray) -> list:
-        """Per object: active nodes, their positions, gaps, normals and gap Hessians (3 x 3
-        d2g/dx2). The gradient, the Hessian, Newton's correction and the pose rates of one state
-        share them: the same positions, poses and ignored nodes as the last call's reuse its
-        result."""
+        """Per object: the barrier's terms, each of a node (a node may have several), with its
+        weight (the node's area, times the term's sign), the node's position, the gap, its normal
+        and its Hessian (3 x 3 d2g/dx2). An analytic object has one term per node within dhat, a
+        triangle mesh one per (node, triangle), (node, edge) and (node, vertex) pair within dhat
+        (``TriangleMesh.barrier_terms``, docs/contact.md "A smooth barrier"). The gradient, the
+        Hessian, Newton's correction and the pose rates of one state share them: the same
+        positions, poses and ignored nodes as the last call's reuse its result."""
         x = self.positions(displacement)
         last = self._last_terms
         if last is not None and last[1] is self.poses and last[2] is self.ignored and np.array_equal(last[0], x):
@@ -415,7 +421,15 @@ class ContactPotential:
         terms = []
         for obj, pose, by_nodes in zip(self.objects, self.poses, self.node_barrier):
             if not by_nodes:  # a subclass's barrier takes the object
-                terms.append((np.zeros(0, dtype=int), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3))))
+                terms.append((np.zeros(0, dtype=int), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)),
+                              np.zeros((0, 3, 3))))
+                continue
+            if isinstance(obj, TriangleMesh):
+                which, sign, gap, normal, gap_hessian = obj.barrier_terms(x, pose, within=self.dhat)
+                kept = ~self.ignored[which]
+                active = which[kept]
+                terms.append((active, sign[kept] * self.surface.areas[active], x[active], gap[kept], normal[kept],
+                              gap_hessian[kept]))
                 continue
             # Nodes surely beyond dhat get a lower bound of their gap (>= dhat): inactive either way.
             gap, normal, curvature = obj.gaps(x, pose, within=self.dhat)
@@ -425,23 +439,23 @@ class ContactPotential:
             # a triangle mesh.
             gap_hessian = (curvature if curvature.ndim == 3 else
                            curvature[:, None, None] * (np.eye(3) - normal[:, :, None] * normal[:, None, :]))
-            terms.append((active, x[active], gap[active], normal, gap_hessian))
+            terms.append((active, self.surface.areas[active], x[active], gap[active], normal, gap_hessian))
         self._last_terms = (x, self.poses, self.ignored, terms)
         return terms
 
     def energy(self, x: PETSc.Vec) -> float:
         """E_c at the displacement ``x`` (the same on every rank; inf if a node is inside)."""
         scale = self.stiffness / self.dhat
-        return float(sum(scale * (self.surface.areas[active] * barrier(gap, self.dhat)).sum()
-                         for active, _, gap, _, _ in self._terms(x.array_r)))
+        return float(sum(scale * (weight * barrier(gap, self.dhat)).sum()
+                         for _, weight, _, gap, _, _ in self._terms(x.array_r)))
 
     def nodal_forces(self, displacement: np.ndarray) -> np.ndarray:
         """(nodes, 3) dE_c/dx at every contact node (the force on the objects; NaN if inside)."""
         gradient = np.zeros((self.surface.num_nodes, 3))
         scale = self.stiffness / self.dhat
-        for active, _, gap, normal, _ in self._terms(displacement):
+        for active, weight, _, gap, normal, _ in self._terms(displacement):
             first, _ = barrier_derivatives(gap, self.dhat)
-            np.add.at(gradient, active, (scale * self.surface.areas[active] * first)[:, None] * normal)
+            np.add.at(gradient, active, (scale * weight * first)[:, None] * normal)
         return gradient
 
     def add_gradient(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
@@ -479,11 +493,11 @@ class ContactPotential:
         """(nodes, 3, 3): d2E_c/dx2 of every contact node (the same on every rank)."""
         blocks = np.zeros((self.surface.num_nodes, 3, 3))
         scale = self.stiffness / self.dhat
-        for active, _, gap, normal, gap_hessian in self._terms(x.array_r):
+        for active, weight, _, gap, normal, gap_hessian in self._terms(x.array_r):
             first, second = barrier_derivatives(gap, self.dhat)
             # d2b/dx2 = b'' n n^T + b' d2g/dx2
             local = second[:, None, None] * normal[:, :, None] * normal[:, None, :] + first[:, None, None] * gap_hessian
-            np.add.at(blocks, active, scale * self.surface.areas[active][:, None, None] * local)
+            np.add.at(blocks, active, scale * weight[:, None, None] * local)
         return blocks
 
     def _add_blocks(self, blocks: np.ndarray, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> None:
@@ -551,18 +565,23 @@ class ContactPotential:
 
     def carry(self, poses, solver, reach: float) -> int:
         """Put the objects at ``poses``, carrying along the surface nodes that rest on them: every
-        node within ``reach`` (mm) of an object at its present pose is held, for one Newton solve
-        of ``solver``, where the object's move from its present pose to its new one takes it, and
-        left out of the barrier meanwhile. The held nodes keep their gaps to the object they rest
-        on, the flesh follows them and the bones (whose Dirichlet values the solve reaches as
-        well), and the solve that follows releases them. A jaw opening with the lining left behind
-        would otherwise drag the lining along the teeth in collision-limited steps that also cut
-        the bones' motion short. Returns the Newton iterations it took."""
+        node within ``reach`` (mm) of an object at its present pose, and every farther one that the
+        object at its new pose would leave closer than PUSH_GAP * dhat (the teeth closing onto the
+        lining in front of them), is held, for one Newton solve of ``solver``, where the object's
+        move from its present pose to its new one takes it, and left out of the barrier meanwhile.
+        The held nodes keep their gaps to the object they rest on, the flesh follows them and the
+        bones (whose Dirichlet values the solve reaches as well), and the solve that follows
+        releases them. A jaw opening with the lining left behind would otherwise drag the lining
+        along the teeth in collision-limited steps that also cut the bones' motion short; a node
+        the teeth overrun would be inside them. Returns the Newton iterations it took."""
         u = solver.unknown
         x = self.positions(u.x.array)
         gaps = self.gaps(u.x.array, within=reach)
-        nearest, closest = gaps.argmin(axis=0), gaps.min(axis=0)
-        held = closest < reach
+        # A node farther than ``reach`` that an object's new pose overruns goes with that object.
+        overrun = self.gaps(u.x.array, poses, within=PUSH_GAP * self.dhat) < PUSH_GAP * self.dhat
+        carried = (gaps < reach) | overrun
+        gaps[~carried] = np.inf
+        nearest, held = gaps.argmin(axis=0), carried.any(axis=0)
         target = x.copy()
         for k, (old, new) in enumerate(zip(self.poses, poses)):
             chosen = held & (nearest == k)
@@ -626,7 +645,7 @@ class ContactPotential:
         out = np.zeros((self.surface.num_nodes, 3))
         scale = self.stiffness / self.dhat
         identity = np.eye(3)
-        for obj, pose, rate, (active, x, gap, n, gap_hessian) in zip(self.objects, self.poses, rates,
+        for obj, pose, rate, (active, weight, x, gap, n, gap_hessian) in zip(self.objects, self.poses, rates,
                                                                      self._terms(displacement)):
             if rate is None:
                 continue
@@ -641,7 +660,7 @@ class ContactPotential:
             first, second = barrier_derivatives(gap, self.dhat)
             gap_rate = -np.einsum("ij,ij->i", n, v)
             normal_rate = n @ W.T - np.einsum("kij,kj->ki", gap_hessian, v)
-            np.add.at(out, active, (scale * self.surface.areas[active])[:, None]
+            np.add.at(out, active, (scale * weight)[:, None]
                       * ((second * gap_rate)[:, None] * n + first[:, None] * normal_rate))
         return out
 

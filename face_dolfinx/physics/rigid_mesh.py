@@ -27,6 +27,22 @@ reach of the surface. The bound is one of the distance: it bounds the gap of a p
 surface, the only points the contact terms evaluate (their states are kept outside every object
 by the collision-free steps; ``ContactPotential.gaps`` and ``check_clear`` ask for exact gaps).
 
+A smooth barrier: the gap to the nearest triangle has a gradient that jumps where the nearest
+triangle changes across a concave edge or vertex, and the barrier of it with it; a node pressed
+onto such an edge sees its force turn by the edge's angle as it crosses. The barrier of a triangle
+mesh is instead the sum over its features within dhat of a node, triangles and vertices with
+sign +1 and edges with -1, of b(distance to the closed feature) (``barrier_terms``). Each term is C1
+in the node's position (the distance to a closed convex set is C1 off it; b is C2 at dhat), so the
+sum is. By the layer-cake form b(d) = integral over r in (d, dhat) of -b'(r), the sum is the
+integral of -b'(r) times the Euler characteristic of the part of the surface within r of the node
+(inclusion-exclusion over the closed triangles that part meets, whose intersections are the edges
+and vertices): where that part is one disc, as on every flat or convex piece, the barrier is
+b(distance to the surface) exactly; next to a concave edge, where a ball can touch the two
+triangles but not their edge, both push (a plain sum over point-triangle pairs counts a node over a
+vertex of six triangles six times, which the edges' terms cancel here). Its Hessian per term is
+that of the distance to one feature: 0 over a triangle's face, (I - n n^T - e e^T) / d next to an
+edge of direction e and (I - n n^T) / d next to a vertex.
+
 ``first_contact`` bounds the time at which a point moving along a straight step first comes
 within a clearance of the surface, from below: per candidate triangle the larger of the time to
 reach the clearance from the triangle's plane (the distance to a triangle is at least that to its
@@ -57,6 +73,10 @@ class TriangleMesh:
         normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         self.normals = normal / np.linalg.norm(normal, axis=1)[:, None]
         self.pseudonormals = self._pseudonormals()
+        # The surface's edges (each once, as vertex pairs) and each triangle's three (ab, bc, ca).
+        directed = np.concatenate([self.triangles[:, [0, 1]], self.triangles[:, [1, 2]], self.triangles[:, [2, 0]]])
+        self.edges, index = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True)
+        self.triangle_edges = index.reshape(3, -1).T
         samples, self.sample_triangles, self.covering_radius = covering_points(corners[:, 0], corners[:, 1],
                                                                               corners[:, 2])
         self.sample_tree = cKDTree(samples)
@@ -123,29 +143,113 @@ class TriangleMesh:
     def _distances(self, points: np.ndarray, upper: np.ndarray):
         # The nearest triangle is no farther than the nearest sample.
         which, tri = self.candidate_pairs(points, upper)
-        p = points[which]
+        distance, offset, region = self._pair_offsets(points[which], tri)
+        first = self._nearest(which, distance, len(points))
+        d, offset, reg, t = distance[first], offset[first], region[first], tri[first]
+        sign = self._signs(offset, t, reg)
+        unit = self._units(d, offset, t, reg)
+        with np.errstate(divide="ignore"):
+            scale = np.where(d > 0.0, sign / d, 0.0)
+        return sign * d, sign[:, None] * unit, scale[:, None, None] * self._projections(unit, t, reg)
+
+    def _pair_offsets(self, p: np.ndarray, tri: np.ndarray):
+        """Distance, offset x - closest point and closest-point region of each (point, triangle) pair."""
         corners = self.corners[tri]
         closest, _, region = closest_points(p, corners[:, 0], corners[:, 1], corners[:, 2])
-        distance = np.linalg.norm(p - closest, axis=1)
-        # The nearest candidate of each point: sort by (point, distance), take the first.
+        offset = p - closest
+        return np.linalg.norm(offset, axis=1), offset, region
+
+    @staticmethod
+    def _nearest(which: np.ndarray, distance: np.ndarray, count: int) -> np.ndarray:
+        """The pair of least distance of each of ``count`` points (every point has a pair)."""
         order = np.lexsort((distance, which))
-        first = order[np.searchsorted(which[order], np.arange(len(points)))]
-        d, offset, reg, t = distance[first], p[first] - closest[first], region[first], tri[first]
-        pseudo = self.pseudonormals[t, reg]
-        sign = np.where(np.einsum("ij,ij->i", offset, pseudo) < 0.0, -1.0, 1.0)
+        return order[np.searchsorted(which[order], np.arange(count))]
+
+    def _signs(self, offset: np.ndarray, tri: np.ndarray, region: np.ndarray) -> np.ndarray:
+        """+1 outside, -1 inside: the side of the closest feature's pseudonormal."""
+        return np.where(np.einsum("ij,ij->i", offset, self.pseudonormals[tri, region]) < 0.0, -1.0, 1.0)
+
+    def _units(self, d: np.ndarray, offset: np.ndarray, tri: np.ndarray, region: np.ndarray) -> np.ndarray:
+        """(x - p) / |x - p|, or the feature's pseudonormal for a point on the surface."""
+        pseudo = self.pseudonormals[tri, region]
         with np.errstate(divide="ignore", invalid="ignore"):
-            unit = np.where(d[:, None] > 0.0, offset / d[:, None], pseudo / np.linalg.norm(pseudo, axis=1)[:, None])
-            scale = np.where(d > 0.0, sign / d, 0.0)
-        # Gap Hessian: the projection off the closest feature and the normal, over the distance.
+            return np.where(d[:, None] > 0.0, offset / d[:, None], pseudo / np.linalg.norm(pseudo, axis=1)[:, None])
+
+    def _projections(self, unit: np.ndarray, tri: np.ndarray, region: np.ndarray) -> np.ndarray:
+        """d times the Hessian of the distance to the closed triangle: the projection off the
+        closest feature and the normal (0 over the face)."""
         projection = np.eye(3) - unit[:, :, None] * unit[:, None, :]
-        edge = np.isin(reg, list(_EDGE_ENDS))
+        edge = np.isin(region, list(_EDGE_ENDS))
         if edge.any():
-            ends = np.array([_EDGE_ENDS[r] for r in reg[edge]])
-            tangent = self.corners[t[edge], ends[:, 1]] - self.corners[t[edge], ends[:, 0]]
+            ends = np.array([_EDGE_ENDS[r] for r in region[edge]])
+            tangent = self.corners[tri[edge], ends[:, 1]] - self.corners[tri[edge], ends[:, 0]]
             tangent /= np.linalg.norm(tangent, axis=1)[:, None]
             projection[edge] -= tangent[:, :, None] * tangent[:, None, :]
-        projection[reg == FACE] = 0.0
-        return sign * d, sign[:, None] * unit, scale[:, None, None] * projection
+        projection[region == FACE] = 0.0
+        return projection
+
+    def local_features(self, points: np.ndarray, within: float):
+        """In the object's frame: the barrier's terms of the points within ``within`` of the
+        surface (module docstring, "a smooth barrier"): one per (point, triangle), (point, edge)
+        and (point, vertex) pair closer than ``within``, as the point's index, the term's sign (+1
+        for triangles and vertices, -1 for edges), the distance to the feature (signed by the
+        point's side of the surface), and its unit gradient and (k, 3, 3) Hessian. A point inside
+        the surface gets only its nearest triangle, with a negative distance."""
+        empty = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
+        lower, upper = self.distance_bounds(points)
+        near = np.flatnonzero(lower < within)
+        if not near.size:
+            return empty
+        # Candidates: every triangle within ``within``, and the nearest one (no farther than D).
+        which, tri = self.candidate_pairs(points[near], np.maximum(upper[near], within))
+        p = points[near]
+        distance, offset, region = self._pair_offsets(p[which], tri)
+        first = self._nearest(which, distance, len(near))
+        side = self._signs(offset[first], tri[first], region[first])
+        outside = side[which] > 0.0
+        # Triangles: the distance to the closed triangle.
+        face = (distance < within) & outside
+        face[first[side < 0.0]] = True
+        unit = self._units(distance[face], offset[face], tri[face], region[face])
+        terms = [(which[face], np.ones(int(face.sum())), distance[face] * side[which[face]],
+                  side[which[face], None] * unit, self._projections(unit, tri[face], region[face]))]
+        # Edges and vertices of the candidate triangles (an edge or a vertex within reach belongs
+        # to a triangle within reach), each once per point; outside points only.
+        nodes, tri = which[outside], tri[outside]
+        for sign, ids, count in ((-1.0, self.triangle_edges[tri], len(self.edges)),
+                                 (1.0, self.triangles[tri], len(self.points))):
+            key = np.unique(np.repeat(nodes, 3) * count + ids.reshape(-1))
+            node, feature = key // count, key % count
+            if sign < 0.0:
+                a, b = self.points[self.edges[feature, 0]], self.points[self.edges[feature, 1]]
+                along = b - a
+                t = np.clip(np.einsum("ij,ij->i", p[node] - a, along) / np.einsum("ij,ij->i", along, along), 0.0, 1.0)
+                offset = p[node] - (a + t[:, None] * along)
+            else:
+                offset = p[node] - self.points[feature]
+            d = np.linalg.norm(offset, axis=1)
+            close = d < within
+            node, offset, d = node[close], offset[close], d[close]
+            unit = offset / d[:, None]
+            projection = np.eye(3) - unit[:, :, None] * unit[:, None, :]
+            if sign < 0.0:
+                # Off the segment's interior the distance is to an end point, as to a vertex.
+                inner = ((t[close] > 0.0) & (t[close] < 1.0))
+                e = along[close][inner] / np.linalg.norm(along[close][inner], axis=1)[:, None]
+                projection[inner] -= e[:, :, None] * e[:, None, :]
+            terms.append((node, np.full(len(node), sign), d, unit, projection))
+        node, sign, d, unit, projection = (np.concatenate(parts) for parts in zip(*terms))
+        with np.errstate(divide="ignore"):
+            scale = np.where(d != 0.0, 1.0 / d, 0.0)
+        return near[node], sign, d, unit, scale[:, None, None] * projection
+
+    def barrier_terms(self, points: np.ndarray, pose: AffineMap, within: float):
+        """``local_features`` of points in the world at ``pose`` (rigid): (point index, sign,
+        distance, unit gradient, Hessian) of every (point, feature) pair closer than ``within``."""
+        rotation = pose.matrix
+        local = (points - pose.translation) @ rotation
+        which, sign, distance, unit, hessian = self.local_features(local, within)
+        return which, sign, distance, unit @ rotation.T, np.einsum("ij,kjl,ml->kim", rotation, hessian, rotation)
 
     def gaps(self, points: np.ndarray, pose: AffineMap, within=np.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signed gap of each point (world) to the surface at ``pose`` (rigid), the unit outward
