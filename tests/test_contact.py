@@ -47,11 +47,12 @@ def sphere_at(depth):
     return AffineMap(np.eye(3), CENTRE - [0.0, 0.0, depth])
 
 
-def pressed_slab(comm=MPI.COMM_WORLD, depth=1.5, degree=1):
-    """The nodal barrier (tests/test_face_contact.py: the skin triangles' one, a sphere's default)."""
-    settings = ContactSettings((Sphere(RADIUS),), (sphere_at(-1.0),), dhat=0.05, stiffness=10.0, faces=False)
+def pressed_slab(comm=MPI.COMM_WORLD, depth=1.5, degree=1, faces=False, at=sphere_at):
+    """The slab pressed ``depth`` mm by the sphere posed by ``at``; by default with the nodal barrier
+    (tests/test_face_contact.py: the skin triangles' one, a sphere's default)."""
+    settings = ContactSettings((Sphere(RADIUS),), (at(-1.0),), dhat=0.05, stiffness=10.0, faces=faces)
     problem = FaceProblem(skin_slab(comm), degree=degree, contact=settings)
-    problem.solve(activations=ACTIVATIONS, objects=(sphere_at(depth),))
+    problem.solve(activations=ACTIVATIONS, objects=(at(depth),))
     return problem
 
 

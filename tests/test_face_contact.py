@@ -16,7 +16,8 @@ from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.physics.contact import CCD_KEEP, ContactSettings, Sphere
 from face_dolfinx.physics.face_contact import FaceContactPotential, distance_derivatives, triangle_distances
 from face_dolfinx.physics.problem import FaceProblem
-from test_contact import ACTIVATIONS, RADIUS, assert_barrier_derivatives, cheek_path, skin_slab
+from test_contact import RADIUS, assert_barrier_derivatives, cheek_path, skin_slab
+from test_contact import pressed_slab as nodal_or_face_pressed_slab
 
 # Off the slab's grid lines, so that no nearest point sits on a boundary between a triangle's
 # face, edge and vertex regions (where the distance's Hessian jumps).
@@ -30,10 +31,7 @@ def sphere_at(depth):
 
 
 def pressed_slab(comm=MPI.COMM_WORLD, depth=1.5, faces=True):
-    settings = ContactSettings((Sphere(RADIUS),), (sphere_at(-1.0),), dhat=0.05, stiffness=10.0, faces=faces)
-    problem = FaceProblem(skin_slab(comm), contact=settings)
-    problem.solve(activations=ACTIVATIONS, objects=(sphere_at(depth),))
-    return problem
+    return nodal_or_face_pressed_slab(comm, depth, faces=faces, at=sphere_at)
 
 
 @pytest.fixture(scope="module")
