@@ -22,6 +22,8 @@ from mpi4py import MPI
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import provenance  # noqa: E402
 from face_dolfinx.equilibrium.dynamics import DynamicsError, DynamicSettings  # noqa: E402
 from face_dolfinx.equilibrium.solver import EquilibriumError  # noqa: E402
 from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
@@ -169,9 +171,19 @@ def main() -> None:
     parser.add_argument("--plot", type=pathlib.Path, help="PNG chart of the marker differences")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-    import provenance
-    # The commit and its dirty flag as the run starts (the tree may change while it runs).
+    started, path, write = start_rows(args, comm)
+    results = [run(path, tissue, motion, comm, args.time_step, write)
+               for motion in args.motions for tissue in args.tissues]
+    if comm.rank == 0:
+        if args.plot:
+            plot(results, args.plot, noise=0.5)
+        provenance.append(args.out, started)
+
+
+def start_rows(args, comm):
+    """The run's provenance as it starts (rank 0; the commit and its dirty flag then, the tree may
+    change while it runs), the built-in face at ``args.tets`` and a writer of result rows to
+    ``args.out`` (emptied first; each row also printed)."""
     started = provenance.entry(provenance.this_command(comm.size), [args.tets], comm.size) if comm.rank == 0 else None
     path = build_builtin_face(target_tets=args.tets, comm=comm)
     if comm.rank == 0:
@@ -183,13 +195,7 @@ def main() -> None:
             with args.out.open("a") as stream:
                 stream.write(json.dumps(row) + "\n")
             print(json.dumps(row), flush=True)
-
-    results = [run(path, tissue, motion, comm, args.time_step, write)
-               for motion in args.motions for tissue in args.tissues]
-    if comm.rank == 0:
-        if args.plot:
-            plot(results, args.plot, noise=0.5)
-        provenance.append(args.out, started)
+    return started, path, write
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ difference, the means per frame and the cost ratio.
     python benchmarks/dynamics_contact.py --tets 5000 --out benchmarks/results/dynamics/contact_5k.jsonl
 """
 import argparse
-import json
 import pathlib
 import sys
 import time
@@ -25,10 +24,10 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from dynamics import FRAME_RATE, marker_nodes  # noqa: E402
+from dynamics import FRAME_RATE, marker_nodes, start_rows  # noqa: E402
+import provenance  # noqa: E402
 from face_dolfinx.equilibrium.dynamics import DynamicsError, DynamicSettings  # noqa: E402
 from face_dolfinx.equilibrium.solver import EquilibriumError  # noqa: E402
-from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
 from face_dolfinx.model.folder import load_model  # noqa: E402
 from face_dolfinx.physics.contact import TEETH_STIFFNESS, ContactSettings  # noqa: E402
 from face_dolfinx.physics.problem import Controls, FaceProblem  # noqa: E402
@@ -124,20 +123,7 @@ def main() -> None:
     parser.add_argument("--out", type=pathlib.Path, required=True, help="JSON-lines file")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
-    import provenance
-    # The commit and its dirty flag as the run starts (the tree may change while it runs).
-    started = provenance.entry(provenance.this_command(comm.size), [args.tets], comm.size) if comm.rank == 0 else None
-    path = build_builtin_face(target_tets=args.tets, comm=comm)
-    if comm.rank == 0:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text("")
-
-    def write(row):
-        if comm.rank == 0:
-            with args.out.open("a") as stream:
-                stream.write(json.dumps(row) + "\n")
-            print(json.dumps(row), flush=True)
-
+    started, path, write = start_rows(args, comm)
     for motion in args.motions:
         run(path, motion, comm, args.time_step, write)
     if comm.rank == 0:
