@@ -70,8 +70,15 @@ def test_reuse_across_solves_keeps_the_factor_while_every_iteration_contracts_en
 def test_krylov_on_the_old_factor_refreshes_when_a_linear_solve_slows():
     policy = FactorReusePolicy(across_solves=True, krylov_refresh_iterations=8)
     steps = [(1e4, 1.0, False), (9e3, 1.0, False), (8e3, 1.0, False), (7e3, 1.0, False)]
-    # Residual contractions of 0.9 do not matter here, only the linear iterations.
+    # Residual contractions of 0.875-0.9 keep the factor as long as the linear solves are quick.
     assert newton(policy, steps, linear_iterations=[0, 8, 9, 3]) == [False, True, False, True]
+
+
+def test_krylov_on_the_old_factor_refreshes_when_newton_stalls():
+    policy = FactorReusePolicy(across_solves=True, krylov_refresh_iterations=8)
+    steps = [(1e4, 1.0, False), (5e3, 1.0, False), (4.9e3, 1.0, False), (4.85e3, 1.0, False), (1e3, 1.0, False)]
+    # Quick linear solves, but the residual falls by 0.98-0.99 per iteration: a fresh factor.
+    assert newton(policy, steps, linear_iterations=[0, 2, 2, 2, 2]) == [False, True, True, False, True]
 
 
 def test_a_solver_writes_its_options_under_its_prefix_and_the_user_wins():

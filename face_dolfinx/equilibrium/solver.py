@@ -90,6 +90,11 @@ REFRESH_CONTRACTION = 0.25
 # instead of 3-5, but 64-95 residual evaluations and 46-63 solves (0.28 s each), so no faster
 # than refactorising; it pays where a factorisation costs far more than a solve.
 KRYLOV_REFRESH_ITERATIONS = 8
+# ... or when the residual fell by less than this per Newton iteration over the last two: GMRES on the old
+# factor converging in few iterations does not mean Newton progresses. On a 20K tracking frame
+# with lip and teeth contact, Newton kept the factor for 100 iterations (~9 residuals each) at a
+# time and never converged (docs/performance.md, "Contact in tracking").
+KRYLOV_STALL_CONTRACTION = 0.9
 KRYLOV_OPTIONS = {
     "snes_mf_operator": None,
     "snes_ksp_ew": None,
@@ -280,7 +285,8 @@ class FactorReusePolicy:
     two iterations together contract as fast. ``across_solves`` True (``reuse_factorization``):
     the last factor, from whichever solve, is kept for as long as every iteration cuts the residual
     by ``refresh_contraction`` or more, or, with Krylov on the old factor, a linear solve takes no
-    more than ``krylov_refresh_iterations``. Either way a step that the inversion guard had to cut
+    more than ``krylov_refresh_iterations`` and the residual falls by ``KRYLOV_STALL_CONTRACTION`` or
+    more per iteration over the last two. Either way a step that the inversion guard had to cut
     refreshes the factor (it says the factor is stale, not that Newton stalls).
 
     The solver reports each residual norm (``record_residual``), each Newton correction
@@ -327,7 +333,8 @@ class FactorReusePolicy:
         iterations of the last linear solve when corrections are solved by Krylov preconditioned
         by the factor (None: by the factor alone)."""
         if linear_iterations is not None:
-            contracting = iteration > 0 and linear_iterations <= self.krylov_refresh_iterations
+            contracting = (iteration > 0 and linear_iterations <= self.krylov_refresh_iterations
+                           and self.two_step_contraction <= KRYLOV_STALL_CONTRACTION)
         else:
             contracting = iteration > 0 and self.contraction <= self.refresh_contraction
         if self.across_solves:
