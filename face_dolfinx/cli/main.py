@@ -321,7 +321,7 @@ def _contact_rows(problem) -> dict:
     u, rows = problem.u.x.array, {}
     if problem.contact is not None:
         rows["object"] = dict(centre_mm=problem.controls.objects[0].translation.round(4).tolist(),
-                              **_contact_row(problem.contact, u))
+                              **_contact_row(problem.contact, u), **_triangle_contact_row(problem.contact, u))
     if problem.teeth_contact is not None:
         rows["teeth"] = _contact_row(problem.teeth_contact, u)
     if problem.lips is not None:

@@ -53,7 +53,6 @@ import numpy as np
 from dolfinx import fem
 import dolfinx.fem.petsc as fem_petsc
 
-from face_dolfinx.physics.contact import CCD_KEEP, PUSH_GAP
 
 log = logging.getLogger(__name__)
 
@@ -105,14 +104,11 @@ class DynamicSettings:
 
 
 def needs_held_move(contact, displacement: np.ndarray, old_poses, new_poses) -> bool:
-    """Whether moving ``contact``'s objects from ``old_poses`` to ``new_poses`` takes more of some
-    node's gap than a collision-free Newton step may (``CCD_KEEP``) and leaves it closer than
-    ``PUSH_GAP`` dhat (a node inside counts): then the barrier alone would start a step inside an
-    object or against it, and the step starts from the held move (module docstring). The same on
-    every rank."""
-    now = contact.gaps(displacement, old_poses)
-    moved = contact.gaps(displacement, new_poses)
-    return bool(((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * contact.dhat)).any())
+    """Whether moving ``contact``'s objects from ``old_poses`` to ``new_poses`` would start a step
+    inside an object or against it (``ContactPotential.closes_in``: for a sphere's triangle barrier
+    the skin's triangles count too): then the step starts from the held move (module docstring).
+    The same on every rank."""
+    return contact.closes_in(displacement, old_poses, new_poses)
 
 
 class TimeLevels:

@@ -541,6 +541,14 @@ class ContactPotential:
         return fraction
 
     # -- moving the objects ------------------------------------------------------------------
+    def closes_in(self, displacement: np.ndarray, old_poses, new_poses) -> bool:
+        """Whether moving the objects from ``old_poses`` to ``new_poses`` takes more of some node's
+        gap than a collision-free step may (``CCD_KEEP``) and leaves it closer than PUSH_GAP dhat (a
+        node inside counts): a start that the barrier alone cannot take, which ``move_to`` makes.
+        The same on every rank."""
+        now, moved = self.gaps(displacement, old_poses), self.gaps(displacement, new_poses)
+        return bool(((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * self.dhat)).any())
+
     def push_out(self, displacement: np.ndarray, poses) -> tuple[np.ndarray, np.ndarray]:
         """The displacement with every node that the objects at ``poses`` would leave closer than
         PUSH_GAP * dhat moved out along the object's normal to that gap (a start that overlaps no

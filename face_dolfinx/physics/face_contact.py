@@ -268,6 +268,13 @@ class FaceContactPotential(ContactPotential):
                                  f"must leave more than {margin:g} mm")
 
     # -- moving the objects ------------------------------------------------------------------
+    def closes_in(self, displacement: np.ndarray, old_poses, new_poses) -> bool:
+        """The nodes' test, and the same for the skin triangles against the spheres."""
+        if super().closes_in(displacement, old_poses, new_poses):
+            return True
+        now, moved = self.triangle_gaps(displacement, old_poses), self.triangle_gaps(displacement, new_poses)
+        return bool(((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * self.dhat)).any())
+
     def push_out(self, displacement: np.ndarray, poses) -> tuple[np.ndarray, np.ndarray]:
         """The nodal push-out, then the corners of every triangle that a sphere at its new pose
         would leave closer than PUSH_GAP * dhat moved radially out by the triangle's shortfall to

@@ -46,7 +46,7 @@ from face_dolfinx.model.folder import cell_midpoints
 from face_dolfinx.model.regions import material_fields
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
-from face_dolfinx.physics.contact import CARRY_REACH, CCD_KEEP, PUSH_GAP, ContactPotential, ContactSettings
+from face_dolfinx.physics.contact import CARRY_REACH, ContactPotential, ContactSettings
 from face_dolfinx.physics.face_contact import FACE_NEWTON_ITERATIONS, FaceContactPotential, contact_potential
 from face_dolfinx.physics.self_contact import LIP_NEWTON_ITERATIONS, LipContact, LipContactSettings, lip_facets
 from face_dolfinx.physics.material import FaceMaterial, FiberSlot
@@ -536,9 +536,7 @@ class FaceProblem:
             return iterations + self.teeth_contact.carry(self.teeth_poses(controls), self.solver, CARRY_REACH)
         if self.teeth_contact is not None:
             poses = self.teeth_poses(controls)
-            now = self.teeth_contact.gaps(self.u.x.array)
-            moved = self.teeth_contact.gaps(self.u.x.array, poses)
-            if ((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * self.teeth_contact.dhat)).any():
+            if self.teeth_contact.closes_in(self.u.x.array, self.teeth_contact.poses, poses):
                 iterations += self.teeth_contact.move_to(poses, self.solver)
         return iterations
 
