@@ -248,7 +248,10 @@ def test_a_marker_of_weight_zero_is_followed_but_not_fitted(take, mode):
         fitter = FaceFitter(problem, MarkerSet(problem, sites, weights=marker_weights), FitSettings(mode=mode))
         results.append(fitter.fit_frame(frame_targets))
     weighted, with_gap = results
-    assert np.array_equal(weighted.activations, with_gap.activations)
+    if MPI.COMM_WORLD.size == 1:
+        assert np.array_equal(weighted.activations, with_gap.activations)
+    else:  # MUMPS schedules its work over the ranks as they run: two factorisations may round apart
+        assert np.abs(weighted.activations - with_gap.activations).max() < 1e-10
     assert weighted.rms_error == pytest.approx(with_gap.rms_error, rel=1e-12)
     assert np.isnan(with_gap.marker_errors[3]) and abs(weighted.marker_errors[3] - 10.0) < 0.5
 
