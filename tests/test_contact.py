@@ -134,18 +134,20 @@ def test_gradient_and_hessian_against_differences_of_the_energy(slab):
     assert_barrier_derivatives(slab, slab.contact)
 
 
+def gaps_while_pressing(problem, smallest_gap, at=sphere_at) -> list:
+    """The sphere pressed 1 and then 2.5 mm in, a solve each: ``smallest_gap(displacement)`` at
+    every Newton iterate (the solves must converge)."""
+    gaps = []
+    problem.solver.snes.setMonitor(lambda snes, iteration, norm: gaps.append(smallest_gap(snes.getSolution().array_r)))
+    for depth in (1.0, 2.5):
+        assert problem.solve(objects=(at(depth),)).converged
+    problem.solver.snes.cancelMonitor()
+    return gaps
+
+
 def test_no_node_enters_the_sphere_at_any_newton_iterate():
     problem = pressed_slab(depth=0.0)
-    gaps = []
-
-    def monitor(snes, iteration, norm):
-        gaps.append(problem.contact.min_gap(snes.getSolution().array_r))
-
-    problem.solver.snes.setMonitor(monitor)
-    for depth in (1.0, 2.5):
-        report = problem.solve(objects=(sphere_at(depth),))
-        assert report.converged
-    problem.solver.snes.cancelMonitor()
+    gaps = gaps_while_pressing(problem, problem.contact.min_gap)
     assert len(gaps) > 5 and min(gaps) > 0.0
     assert 0.0 < problem.contact.min_gap(problem.u.x.array) < problem.contact.dhat
     # Equilibrium of the total energy: the residual, contact included, is at its floor.

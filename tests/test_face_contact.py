@@ -16,7 +16,7 @@ from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.physics.contact import CCD_KEEP, ContactSettings, Sphere
 from face_dolfinx.physics.face_contact import FaceContactPotential, distance_derivatives, triangle_distances
 from face_dolfinx.physics.problem import FaceProblem
-from test_contact import RADIUS, assert_barrier_derivatives, assert_force_balance, cheek_path, skin_slab
+from test_contact import RADIUS, assert_barrier_derivatives, assert_force_balance, gaps_while_pressing, cheek_path, skin_slab
 from test_contact import pressed_slab as nodal_or_face_pressed_slab
 
 # Off the slab's grid lines, so that no nearest point sits on a boundary between a triangle's
@@ -78,16 +78,7 @@ def test_no_triangle_enters_the_sphere_at_any_newton_iterate():
     """Every triangle stays outside at every iterate, the moving solves included; the nodal
     barrier, pressed as far, leaves points of the triangles inside (the slab's 2.5 mm squares)."""
     problem = pressed_slab(depth=0.0)
-    gaps = []
-
-    def monitor(snes, iteration, norm):
-        gaps.append(problem.contact.triangle_gaps(snes.getSolution().array_r).min())
-
-    problem.solver.snes.setMonitor(monitor)
-    for depth in (1.0, 2.5):
-        report = problem.solve(objects=(sphere_at(depth),))
-        assert report.converged
-    problem.solver.snes.cancelMonitor()
+    gaps = gaps_while_pressing(problem, lambda u: problem.contact.triangle_gaps(u).min(), sphere_at)
     assert len(gaps) > 5 and min(gaps) > 0.0
     assert 0.0 < problem.contact.triangle_gaps(problem.u.x.array).min() < problem.contact.dhat
     assert problem.residual_norm() < 1e-6
