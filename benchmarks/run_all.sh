@@ -37,12 +37,12 @@ lips=$RESULTS/contact/lip_calls_5k-20k_np1.jsonl
 $PYTHON benchmarks/provenance.py start $lips
 add $lips $PYTHON benchmarks/lip_contact_calls.py --tets 5000 20000 --compare-with runs/self_contact_944f7b8.py
 add $lips $PYTHON benchmarks/lip_contact_calls.py --tets 5000 --ipctk-threads 1
-# A warm tracking frame with lip and teeth contact against the same frame without (fit --fast, one run).
-record $RESULTS/contact/tracking_5k_np1.jsonl $PYTHON benchmarks/contact_tracking.py --tets 5000 --frames 4 --max-seconds 900
-record $RESULTS/contact/tracking_5k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py --tets 5000 --frames 3 \
-  --max-seconds 600
+# A warm tracking frame with lip and teeth contact against the same frame without (fit --fast, one run):
+# modified Newton and Krylov on the old factor.
+record $RESULTS/contact/tracking_5k_np1.jsonl $PYTHON benchmarks/contact_tracking.py --tets 5000 --frames 5 \
+  --variants no-contact contact contact-krylov --max-seconds 600 --abort-seconds 2400
 record $RESULTS/contact/tracking_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py --tets 400000 \
-  --frames 3 --max-seconds 3600
+  --truth-tets 20000 --frames 3 --variants no-contact contact-krylov contact --max-seconds 1200 --abort-seconds 5400
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
