@@ -284,3 +284,37 @@ def test_pressure_on_a_model_without_an_oral_surface(model, shared_dir):
     with pytest.raises(SystemExit, match=r"puff\.csv: .*no facets tagged 'oral'"):
         simulate_animation(without_oral, args)
     assert not out.exists()
+
+
+def test_an_animation_played_with_contact(model, builtin_model_path, shared_dir):
+    """simulate --animation --contact: the orbicularis oris at 1 presses the lips together, which
+    pass through each other when played without contact and stay apart with it, on the teeth, in
+    quasistatic and dynamic playback; run.json records the contact."""
+    from face_dolfinx.physics.problem import FaceProblem
+    from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, lip_facets
+    from face_dolfinx.results.xdmf import FileNodeOrder
+    sphincter = [m.name for m in model.muscles if m.name.startswith("orbicularis_oris")]
+    path = write_on_rank_0(shared_dir / "press.csv", "time_s," + ",".join(sphincter) + "\n"
+                           + "0" + ",0" * len(sphincter) + "\n" + "0.05" + ",1" * len(sphincter) + "\n")
+    model_option = ["--model", str(builtin_model_path)]
+    runs = {name: shared_dir / f"pressed_{name}" for name in ("plain", "contact", "dynamic")}
+    assert main(["simulate", *model_option, "--animation", str(path), "--out", str(runs["plain"])]) == 0
+    assert main(["simulate", *model_option, "--animation", str(path), "--out", str(runs["contact"]), "--contact"]) == 0
+    assert main(["simulate", *model_option, "--animation", str(path), "--out", str(runs["dynamic"]), "--contact",
+                 "--dynamic", "--time-step", "0.025"]) == 0
+    problem = FaceProblem(model)
+    lips = LipContact(problem.V, *lip_facets(model, LipContactSettings()), LipContactSettings(), problem.bone_blocks)
+    node_order = FileNodeOrder(problem.V)
+    penetration = {}
+    for name, out in runs.items():
+        record = json.loads((out / "run.json").read_text())
+        assert record["contact"] is (name != "plain")
+        assert record["contact_surfaces"] == ([] if name == "plain" else ["lips", "teeth"])
+        stored = np.load(out / "frames" / "000001.displacement.npy") if MPI.COMM_WORLD.rank == 0 else None
+        displacement = node_order.scatter(MPI.COMM_WORLD.bcast(stored, root=0))
+        penetration[name] = lips.penetration(displacement)
+        if name != "plain":
+            assert lips.min_distance(displacement) > 0.0
+    assert penetration["plain"] > 1.0 and penetration["contact"] == penetration["dynamic"] == 0.0  # mm
+    with pytest.raises(SystemExit, match="contact: False there, True now"):
+        main(["simulate", *model_option, "--animation", str(path), "--out", str(runs["plain"]), "--contact"])

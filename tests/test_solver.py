@@ -10,17 +10,17 @@ from slab import slab_model
 
 def newton(policy, iterations, linear_iterations=None):
     """Drive ``policy`` as QuasistaticSolver does through Newton iterations given as (residual
-    norm, correction size, step cut by the guard); returns, per iteration, whether it kept the
-    factor."""
+    norm, correction size, step cut by the guard[, the energy terms' bound of the step]); returns,
+    per iteration, whether it kept the factor."""
     kept = []
     policy.start_solve()
-    for k, (norm, correction, cut) in enumerate(iterations):
+    for k, (norm, correction, cut, *bound) in enumerate(iterations):
         policy.record_residual(k, norm)
         keep = policy.keep_factor(k, None if linear_iterations is None else linear_iterations[k])
         if not keep:
             policy.factorised(in_newton=True)
         kept.append(keep)
-        policy.record_correction(correction, cut)
+        policy.record_correction(correction, cut, *bound)
     return kept
 
 
@@ -65,6 +65,18 @@ def test_reuse_across_solves_keeps_the_factor_while_every_iteration_contracts_en
     assert newton(policy, [(1e2, 0.01, False)]) == [False]
     # A cut step refreshes here too.
     assert newton(policy, [(1e2, 0.01, True), (1e1, 0.01, False)]) == [True, False]
+
+
+def test_a_step_shortened_by_a_contact_bound_is_judged_by_its_length():
+    """A collision-free bound that lets a correction go a fraction t of the way: the residual of
+    the quadratic model falls by t, so the factor is kept when it fell by 1 - t (1 - 0.25)."""
+    policy = FactorReusePolicy(across_solves=True, refresh_contraction=0.25)
+    steps = [(1e4, 1.0, False, 0.2), (8.5e3, 1.0, False, 0.2), (7.7e3, 1.0, False), (1e3, 1.0, False)]
+    # 0.85 after a fifth of a step: kept; 0.906 after another fifth: refreshed; the full step's
+    # 0.13 keeps the new factor.
+    assert newton(policy, steps) == [False, True, False, True]
+    # Without the bound the same 0.85 refreshes the factor.
+    assert newton(policy, [(1e4, 1.0, False), (8.5e3, 1.0, False)]) == [True, False]
 
 
 def test_krylov_on_the_old_factor_refreshes_when_a_linear_solve_slows():

@@ -386,7 +386,8 @@ def dynamic_settings(args):
 def simulate_animation(model, args) -> None:
     """Play an animation (a CSV or TOML file, or a fit or simulation results folder) on the model
     into a results folder like a fit's, resumable frame by frame
-    (``face_dolfinx.animation.playback``)."""
+    (``face_dolfinx.animation.playback``); ``--contact``: the lips on each other and on the teeth,
+    in quasistatic and dynamic playback alike (run.json records it)."""
     from face_dolfinx.animation.playback import animation_and_markers, open_playback, play
     from face_dolfinx.physics.problem import FaceProblem
     from face_dolfinx.results.folder import FitFolderError
@@ -399,11 +400,14 @@ def simulate_animation(model, args) -> None:
     settings = dynamic_settings(args) if args.dynamic else None
     animation.check(model)
     start = time.perf_counter()
-    try:  # the model may lack what the animation needs (an 'oral' surface for its pressure)
+    contact = _object_from_args(args)  # --contact: the lips on the teeth (objects are refused with --animation)
+    try:  # the model may lack what the animation needs (an 'oral' surface for its pressure) or teeth
         problem = FaceProblem(model, degree=args.degree, intraoral_pressure=animation.has_pressure,
-                              newton_tolerance=args.newton_tolerance, reuse_factorization=args.reuse_factorization)
+                              newton_tolerance=args.newton_tolerance, reuse_factorization=args.reuse_factorization,
+                              contact=contact[0] if contact is not None else None, lip_contact=_lip_contact(args))
     except ValueError as error:
-        raise SystemExit(f"face-dolfinx: error: {animation.source}: {error}") from None
+        raise SystemExit(f"face-dolfinx: error: {animation.source}{' with --contact' if args.contact else ''}: "
+                         f"{error}") from None
     setup = time.perf_counter() - start
     try:
         folder, markers = open_playback(model, animation, args.out, markers=markers, overwrite=args.overwrite,
@@ -411,7 +415,9 @@ def simulate_animation(model, args) -> None:
                                                    material=[override.describe() for override in model.material_overrides],
                                                    newton_tolerance=args.newton_tolerance,
                                                    reuse_factorization=args.reuse_factorization,
-                                                   dynamic=vars(settings) if settings is not None else None))
+                                                   dynamic=vars(settings) if settings is not None else None,
+                                                   contact=args.contact,
+                                                   contact_surfaces=["lips", "teeth"] if args.contact else []))
     except FitFolderError as error:
         raise SystemExit(str(error)) from None
     if folder.finished:

@@ -284,7 +284,9 @@ class FactorReusePolicy:
     ``refresh_contraction``); from there this solve's last factor finishes the job for as long as
     two iterations together contract as fast. ``across_solves`` True (``reuse_factorization``):
     the last factor, from whichever solve, is kept for as long as every iteration cuts the residual
-    by ``refresh_contraction`` or more, or, with Krylov on the old factor, a linear solve takes no
+    by ``refresh_contraction`` or more (a step that an energy term's collision-free bound shortened
+    to a fraction t of the correction: by 1 - t (1 - ``refresh_contraction``), what a Newton step
+    of that length achieves), or, with Krylov on the old factor, a linear solve takes no
     more than ``krylov_refresh_iterations`` and the residual falls by ``KRYLOV_STALL_CONTRACTION`` or
     more per iteration over the last two. Either way a step that the inversion guard had to cut
     refreshes the factor (it says the factor is stale, not that Newton stalls).
@@ -304,6 +306,7 @@ class FactorReusePolicy:
         self.refreshed_in_solve = False  # ... by the Newton solve under way
         self.fresh_factor = True         # the current iteration's correction comes from its own tangent
         self.step_was_cut = False        # the inversion guard shortened the last correction
+        self.step_bound = 1.0            # fraction of the last correction the energy terms allowed
         self.correction_size = math.inf  # mm, largest dof change of the last correction
         self.contraction = 0.0           # residual norm ratio of the last iteration
         self.two_step_contraction = math.inf  # geometric mean of the last two ratios
@@ -315,7 +318,7 @@ class FactorReusePolicy:
     def record_residual(self, iteration: int, norm: float) -> None:
         """The residual norm at the start of Newton iteration ``iteration`` (0: a new solve)."""
         if iteration == 0:
-            self.step_was_cut = False
+            self.step_was_cut, self.step_bound = False, 1.0
             self.correction_size, self.contraction = math.inf, 0.0
             self.two_step_contraction = math.inf
         else:
@@ -323,10 +326,11 @@ class FactorReusePolicy:
             self.contraction = norm / max(self._last_norm, 1e-300)
         self._last_norm = norm
 
-    def record_correction(self, size: float, cut: bool = False) -> None:
+    def record_correction(self, size: float, cut: bool = False, bound: float = 1.0) -> None:
         """The last Newton correction moved a dof by at most ``size``; ``cut``: the inversion
-        guard shortened it."""
-        self.correction_size, self.step_was_cut = size, cut
+        guard shortened it; ``bound``: the energy terms' collision-free bound let it go this
+        fraction of the way."""
+        self.correction_size, self.step_was_cut, self.step_bound = size, cut, bound
 
     def keep_factor(self, iteration: int, linear_iterations: int | None = None) -> bool:
         """Whether iteration ``iteration`` keeps the factor. ``linear_iterations``: the Krylov
@@ -336,7 +340,9 @@ class FactorReusePolicy:
             contracting = (iteration > 0 and linear_iterations <= self.krylov_refresh_iterations
                            and self.two_step_contraction <= KRYLOV_STALL_CONTRACTION)
         else:
-            contracting = iteration > 0 and self.contraction <= self.refresh_contraction
+            # A step shortened to t of the correction cuts the residual of a quadratic model by t.
+            expected = 1.0 - self.step_bound * (1.0 - self.refresh_contraction)
+            contracting = iteration > 0 and self.contraction <= expected
         if self.across_solves:
             keep = iteration == 0 or contracting
         else:
@@ -419,7 +425,9 @@ class QuasistaticSolver:
     (0, 1] such that x - s t largest step stays admissible for s in [0, 1]); x is the unknown's PETSc
     vector, all collective. A term whose Hessian couples nodes that share no element also has
     ``coupled_blocks()``, (k, 2) global node pairs: the tangent is built with room for them
-    (``widened_tangent``).
+    (``widened_tangent``). A term may change Newton's tangent (not the sensitivities'):
+    ``add_newton_correction(x, A, constrained)``, True if it did, taken at every factorisation, or
+    with ``exact_near_solution`` only until Newton is near the solution (``_newton_corrections``).
     """
 
     def __init__(self, residual: ufl.Form, unknown: fem.Function, bcs: list, *, tangent: str,
@@ -546,14 +554,19 @@ class QuasistaticSolver:
                     x_local.array_r, step_local.array_r, GUARDED_MAX_LAMBDA) / GUARDED_MAX_LAMBDA
         if self.reuse_policy.fresh_factor:
             self._guard_cuts = self._guard_cuts + 1 if fraction < STALLED_GUARD_FRACTION else 0
-        # A step from an old factor that the guard had to cut says the factor is stale, not that
-        # Newton stalls: the next iteration refactorises instead.
-        self.reuse_policy.record_correction(correction_size, cut=fraction < 1.0)
         # The terms' bounds (a barrier's collision-free step) cut routinely while contact
         # settles, with old and fresh factors alike: they count neither as the guard's stall nor
-        # as a stale factor (the residual's contraction judges the factor).
+        # as a stale factor (the residual's contraction, against what a step of that length
+        # achieves, judges the factor).
+        bound = 1.0
         for term in self.energy_terms:
-            fraction = min(fraction, term.step_fraction(x, step, GUARDED_MAX_LAMBDA))
+            bound = min(bound, term.step_fraction(x, step, GUARDED_MAX_LAMBDA))
+        # A step from an old factor that the guard had to cut says the factor is stale, not that
+        # Newton stalls: the next iteration refactorises instead.
+        # (The bound is of the line search's longest step, GUARDED_MAX_LAMBDA corrections.)
+        self.reuse_policy.record_correction(correction_size, cut=fraction < 1.0,
+                                            bound=min(1.0, GUARDED_MAX_LAMBDA * bound))
+        fraction = min(fraction, bound)
         if fraction < 1.0:
             step.scale(fraction)
             return True
@@ -625,13 +638,24 @@ class QuasistaticSolver:
         # factor of that matrix serves Newton, not the sensitivities (factor_distance).
         exact = True
         for term in self.energy_terms:
-            if hasattr(term, "add_newton_correction"):
+            if hasattr(term, "add_newton_correction") and self._newton_corrections(term):
                 exact = not term.add_newton_correction(self.unknown.vector, P, self._constrained_dofs()) and exact
         # The PC sees a changed matrix and factorises it when the KSP is set up.
         self.factorizations += 1
         self.reuse_policy.factorised(in_newton=True)
         self._factor_controls_current = exact
         x.copy(self._factor_state)
+
+    def _newton_corrections(self, term) -> bool:
+        """Whether Newton's tangent takes ``term``'s correction: always, or for a term that says
+        ``exact_near_solution``, only until Newton is near the solution (its last correction was
+        taken whole and moved no dof further than CONVERGING_CORRECTION)."""
+        if not getattr(term, "exact_near_solution", False):
+            return True
+        policy = self.reuse_policy
+        near = (self.snes.getIterationNumber() > 0 and policy.correction_size < CONVERGING_CORRECTION
+                and policy.step_bound >= 1.0 and not policy.step_was_cut)
+        return not near
 
     def _constrained_dofs(self) -> np.ndarray:
         """The owned local dofs of the Dirichlet conditions."""
