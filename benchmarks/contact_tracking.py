@@ -10,7 +10,7 @@ default the lips closing) is tracked by ``face_dolfinx.tracking.Tracker`` (the l
 ``run.py fit``, every frame written to a fit folder under ``--out``) with ``fit --fast``
 (``PRESETS["fast"]``), first without contact, then with the lips' barrier and the teeth
 (``TrackingSettings(contact=True)``, what ``fit --contact`` builds), each variant on a problem of
-its own.
+its own; a contact variant may switch off, by a "+" in its name, what ``ABLATIONS`` lists.
 
 One JSON line per frame as it is done (rank 0): seconds of the fit, Newton iterations (every
 Newton solve of the frame, the teeth's push-out included), Gauss-Newton steps, factorisations,
@@ -41,7 +41,13 @@ from mpi4py import MPI
 import numpy as np
 
 TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5 times one without
-VARIANTS = ("no-contact", "contact", "contact-krylov")
+# What a contact variant may switch off to measure it (docs/contact.md, "Newton with pressed lips"),
+# appended to its name with "+": the lips' exact Hessian in Newton's tangent throughout, and the
+# factor refreshed after every iteration that cuts the residual less than ``refresh_contraction``
+# however short the collision-free bound made its step.
+ABLATIONS = ("exact-lips", "contraction-refresh")
+VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
+            "contact+exact-lips+contraction-refresh")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations")  # QuasistaticSolver's
 
@@ -91,10 +97,17 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
     from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, lip_facets
     from face_dolfinx.tracking import PRESETS, Tracker
 
-    contact = name != "no-contact"
-    settings = PRESETS["fast"].updated(dict(contact=contact, krylov=name == "contact-krylov" or None))
+    base, *ablations = name.split("+")
+    contact = base != "no-contact"
+    settings = PRESETS["fast"].updated(dict(contact=contact, krylov=base == "contact-krylov" or None))
     tracker = Tracker(model, settings)
     problem = tracker.problem
+    if "exact-lips" in ablations:
+        problem.lips.add_newton_correction = lambda x, A, constrained: False
+    if "contraction-refresh" in ablations:
+        policy = problem.solver.reuse_policy
+        record = policy.record_correction
+        policy.record_correction = lambda size, cut=False, bound=1.0: record(size, cut)
     # Without contact the lips are only measured (how far they pass), by a LipContact of their own.
     lips = problem.lips or LipContact(problem.V, *lip_facets(model, LipContactSettings()), LipContactSettings(),
                                       problem.bone_blocks)

@@ -63,7 +63,9 @@ def test_without_contact_the_lips_pass_through_each_other(model):
 def test_no_iterate_penetrates(model):
     problem = FaceProblem(model, lip_contact=LipContactSettings())
     iterates = LipIterates(problem.lips, problem.V)
+    norms = []
     problem.solver.snes.setMonitor(iterates)
+    problem.solver.snes.setMonitor(lambda snes, iteration, norm: norms.append(norm))
     report = problem.solve(activations=sphincter(model), jaw=jaw_pose(model.jaw, CLOSED))
     problem.solver.snes.cancelMonitor()
     assert report.converged and report.load_steps == 1
@@ -71,7 +73,9 @@ def test_no_iterate_penetrates(model):
     u = problem.u.x.array
     assert 0.0 < problem.lips.min_distance(u) < problem.lips.dhat
     assert problem.lips.pairs(u) > 20
-    assert problem.residual_norm() < 1e-6
+    # Newton stops on its correction (1e-10 mm in its converging phase), which against the pressed
+    # lips' stiffness leaves a residual ten orders of magnitude below the first (mN).
+    assert problem.residual_norm() < 1e-10 * norms[0]
 
 
 def _bone_dofs(problem):
