@@ -296,18 +296,21 @@ class LipContact:
         nowhere useful. Returns whether the matrix changed (the same on every rank)."""
         vertices = self.positions(x.array_r)
         collisions = self._collisions(vertices)
-        changed = False
+        change = None
         if len(collisions):
             exact = self.potential.hessian(collisions, self.mesh, vertices)
             projected = self.potential.hessian(collisions, self.mesh, vertices,
                                                project_hessian_to_psd=ipctk.PSDProjectionMethod.CLAMP)
             change = (projected - exact).tocsc()
             change.eliminate_zeros()
-            changed = change.nnz > 0
-            if changed:
+        # The ranks may differ in the last bits of ipctk's threaded sums: they agree on the answer
+        # (and assemble together) by the reduction.
+        changed = self.comm.allreduce(change is not None and change.nnz > 0, op=MPI.LOR)
+        if changed:
+            if change is not None:
                 self._add_matrix(change, A)
-                A.assemble()
-        return self.comm.allreduce(changed, op=MPI.LOR)
+            A.assemble()
+        return changed
 
     def _add_matrix(self, matrix, A: PETSc.Mat) -> None:
         """A += the lip nodes' (3 nodes, 3 nodes) ``matrix`` (scipy sparse) on this rank's rows."""
