@@ -95,6 +95,12 @@ def barrier_derivatives(g: np.ndarray, dhat: float) -> tuple[np.ndarray, np.ndar
             np.where(inactive, 0.0, np.where(g > 0.0, second, np.nan)))
 
 
+def closing_in(now: np.ndarray, moved: np.ndarray, dhat: float) -> bool:
+    """Whether gaps going from ``now`` to ``moved`` (an object's move) lose more than a
+    collision-free step may (``CCD_KEEP``) and end closer than PUSH_GAP dhat somewhere."""
+    return bool(((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * dhat)).any())
+
+
 def advanced_contact(obj, pose, points: np.ndarray, steps: np.ndarray, clearance: np.ndarray,
                      bound: np.ndarray) -> np.ndarray:
     """A first-contact time ``bound`` (a lower bound per point of when points + t steps comes
@@ -546,8 +552,7 @@ class ContactPotential:
         gap than a collision-free step may (``CCD_KEEP``) and leaves it closer than PUSH_GAP dhat (a
         node inside counts): a start that the barrier alone cannot take, which ``move_to`` makes.
         The same on every rank."""
-        now, moved = self.gaps(displacement, old_poses), self.gaps(displacement, new_poses)
-        return bool(((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * self.dhat)).any())
+        return closing_in(self.gaps(displacement, old_poses), self.gaps(displacement, new_poses), self.dhat)
 
     def push_out(self, displacement: np.ndarray, poses) -> tuple[np.ndarray, np.ndarray]:
         """The displacement with every node that the objects at ``poses`` would leave closer than

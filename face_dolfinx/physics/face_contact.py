@@ -42,7 +42,7 @@ from petsc4py import PETSc
 import numpy as np
 
 from face_dolfinx.alignment.surface import closest_points
-from face_dolfinx.physics.contact import (CCD_KEEP, PUSH_GAP, ROUND_OFF, ContactPotential, Sphere,
+from face_dolfinx.physics.contact import (CCD_KEEP, PUSH_GAP, ROUND_OFF, ContactPotential, Sphere, closing_in,
                                           barrier, barrier_derivatives)
 
 # The narrow phase of the triangles' step bound (the centre fixed, the triangle moving); its own
@@ -272,8 +272,8 @@ class FaceContactPotential(ContactPotential):
         """The nodes' test, and the same for the skin triangles against the spheres."""
         if super().closes_in(displacement, old_poses, new_poses):
             return True
-        now, moved = self.triangle_gaps(displacement, old_poses), self.triangle_gaps(displacement, new_poses)
-        return bool(((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * self.dhat)).any())
+        return closing_in(self.triangle_gaps(displacement, old_poses), self.triangle_gaps(displacement, new_poses),
+                          self.dhat)
 
     def push_out(self, displacement: np.ndarray, poses) -> tuple[np.ndarray, np.ndarray]:
         """The nodal push-out, then the corners of every triangle that a sphere at its new pose

@@ -281,10 +281,9 @@ class LipContact:
     def add_hessian(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> None:
         """A += d2E_s/du2 on this rank's rows (assembled); rows and columns of Dirichlet dofs are
         left alone (the lips are free flesh: checked at set-up)."""
-        vertices = self.positions(x.array_r)
-        collisions = self._collisions(vertices)
-        if len(collisions):
-            self._add_matrix(self.potential.hessian(collisions, self.mesh, vertices), A)
+        state = self._state(self.positions(x.array_r))
+        if len(state.collisions):
+            self._add_matrix(state.hessian(self.potential), A)
         A.assemble()
 
     def add_newton_correction(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> bool:
@@ -294,14 +293,10 @@ class LipContact:
         (b' < 0), of size |b'| / d, which grows without bound as the pressed lips close in: the
         tangent then turns indefinite along the lips' sliding, and Newton's corrections there point
         nowhere useful. Returns whether the matrix changed (the same on every rank)."""
-        vertices = self.positions(x.array_r)
-        collisions = self._collisions(vertices)
+        state = self._state(self.positions(x.array_r))
         change = None
-        if len(collisions):
-            exact = self.potential.hessian(collisions, self.mesh, vertices)
-            projected = self.potential.hessian(collisions, self.mesh, vertices,
-                                               project_hessian_to_psd=ipctk.PSDProjectionMethod.CLAMP)
-            change = (projected - exact).tocsc()
+        if len(state.collisions):
+            change = (state.hessian(self.potential, projected=True) - state.hessian(self.potential)).tocsc()
             change.eliminate_zeros()
         # The ranks may differ in the last bits of ipctk's threaded sums: they agree on the answer
         # (and assemble together) by the reduction.
@@ -368,6 +363,16 @@ class _LipState:
     def __init__(self, mesh: ipctk.CollisionMesh, vertices: np.ndarray, dhat: float):
         self.mesh, self.vertices, self.dhat = mesh, vertices, dhat
         self._collisions, self._intersects = None, None
+        self._hessians = {}
+
+    def hessian(self, potential: ipctk.BarrierPotential, projected: bool = False):
+        """The barrier's Hessian (scipy sparse; ``projected``: each pair's onto the positive
+        semidefinite ones): the tangent's and Newton's correction at one iterate share the exact one."""
+        if projected not in self._hessians:
+            method = ipctk.PSDProjectionMethod.CLAMP if projected else ipctk.PSDProjectionMethod.NONE
+            self._hessians[projected] = potential.hessian(self.collisions, self.mesh, self.vertices,
+                                                          project_hessian_to_psd=method)
+        return self._hessians[projected]
 
     @property
     def collisions(self) -> ipctk.NormalCollisions:
