@@ -2,7 +2,7 @@
 built-in face's teeth are closed and behind the lining, written and read with the model, carried
 along to a subject; the lips pressed on them by the orbicularis oris stay outside at every Newton
 iterate and rest on them (and go through them without the contact) after one Newton solve of
-few iterations, also from a prediction that would enter the teeth; a jaw opened and closed with the teeth on keeps every lining node outside them at
+few iterations, also from a prediction that would enter the teeth or close the jaw onto the lining; a jaw opened and closed with the teeth on keeps every lining node outside them at
 every Newton iterate; the same force on 1 and 2 ranks; bad teeth are refused naming the model file.
 """
 import shutil
@@ -202,6 +202,40 @@ def test_a_prediction_into_the_teeth_is_pulled_back(model, pressed, caplog):
     assert "Newton from the predicted shape failed" not in caplog.text
     assert min(gaps) > 0.0
     assert problem.comm.allreduce(np.abs(problem.u.x.array - equilibrium).max(initial=0.0), op=MPI.MAX) < 1e-3
+
+
+def test_a_prediction_that_moves_the_jaw_moves_the_teeth_with_the_bones(model):
+    """A Gauss-Newton prediction that closes the jaw onto the lining (here the opened, pressed
+    equilibrium with its bone nodes put at the closed jaw's frames): the teeth move to the
+    prediction's jaw in a solve that holds the bones where the prediction put them (a solve that
+    held them at the opened frames pulled the mandible back under the closed teeth and pressed the
+    lining into them: a node inside, Newton's barrier blocks without a finite value, the fit ended),
+    and Newton converges with no lining node inside at any iterate."""
+    problem = FaceProblem(model, contact=ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS))
+    teeth = problem.teeth_contact
+    problem.solve(activations=orbicularis_oris(model), jaw=jaw_pose(model.jaw, np.radians(3.0)))
+    closed = jaw_pose(model.jaw, 0.0)
+    guess = problem.u.x.array.copy()
+    blocks = problem.bone_blocks
+    guess.reshape(-1, 3)[blocks] = (problem.bone_positions(problem.controls.cranium, closed)
+                                    - problem.dof_coordinates[blocks])
+    starts, gaps = [], []
+    newton = problem.solver.newton
+
+    def recorded_newton():
+        starts.append(problem.solver.bc_error())
+        return newton()
+
+    problem.solver.newton = recorded_newton
+    problem.solver.snes.setMonitor(lambda snes, it, norm: gaps.append(teeth.min_gap(snes.getSolution().array_r)))
+    report = problem.solve(jaw=closed, guess=guess)
+    problem.solver.snes.cancelMonitor()
+    del problem.solver.newton
+    assert report.converged and min(gaps) > 0.0
+    assert len(starts) >= 2  # the teeth's move was a solve of its own (``ContactPotential.move_to``)
+    motion = np.abs(guess - problem.u.x.array).max()
+    assert starts[0] < 1e-3 * motion  # ... which started with the bones where the prediction put them
+    assert problem.residual_norm() < 1e-6
 
 
 def test_same_force_on_one_rank(model, builtin_model_path, pressed):

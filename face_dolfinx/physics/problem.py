@@ -441,10 +441,7 @@ class FaceProblem:
             self.solver.controls_changed()
         self._scatter(controls.activations, self.slots.activation)
         self.pressure.value = controls.pressure
-        if self.contact is not None:
-            self.contact.set_poses(controls.objects)
-        if self.teeth_contact is not None:
-            self.teeth_contact.set_poses(self.teeth_poses(controls))
+        self._put_objects(controls)
         values = self.bone_displacement.x.array.reshape(-1, 3)
         values[self.bone_blocks] = (self.bone_positions(controls.cranium, controls.jaw)
                                     - self.dof_coordinates[self.bone_blocks])
@@ -491,7 +488,20 @@ class FaceProblem:
                 if term is not None:
                     fraction *= term.admissible_fraction(equilibrium, equilibrium + fraction * (guess - equilibrium))
             self.u.x.array[:] = equilibrium + fraction * (guess - equilibrium)
-            held = self._clear_objects(target)
+            # The pulled-back prediction stands for the controls that far along: its bone nodes go
+            # exactly to their frames there (the prediction is linear in the controls) and the
+            # objects and the teeth move there from the equilibrium's poses in solves that hold the
+            # bones still. Bones moving in such a solve (to the old frames, or the rest of the way
+            # to linearised ones) pressed the lining against the teeth at their new pose until a
+            # node was inside (Newton's barrier blocks had no finite value; the fit ended).
+            reached = start.interpolate(target, fraction) if fraction < 1.0 else target
+            self.set_controls(reached)
+            self.u.x.array.reshape(-1, 3)[self.bone_blocks] = self.bone_displacement.x.array.reshape(-1, 3)[
+                self.bone_blocks]
+            self.u.x.scatter_forward()
+            self._put_objects(start)
+            self.solver.controls_changed()
+            held = self._clear_objects(reached)
             self.set_controls(target)
             ok, iterations, why = self.solver.newton()
             if ok:
@@ -517,6 +527,13 @@ class FaceProblem:
                                                 max_halvings=max_halvings)
         self.set_controls(target)
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
+
+    def _put_objects(self, controls: Controls) -> None:
+        """Put the contact objects and the teeth at their poses in ``controls`` (nothing else)."""
+        if self.contact is not None:
+            self.contact.set_poses(controls.objects)
+        if self.teeth_contact is not None:
+            self.teeth_contact.set_poses(self.teeth_poses(controls))
 
     def _clear_objects(self, controls: Controls, before: Controls | None = None) -> int:
         """Move the objects to their poses in ``controls`` (``ContactPotential.move_to``): a start
