@@ -494,14 +494,16 @@ class FaceProblem:
             # bones still. Bones moving in such a solve (to the old frames, or the rest of the way
             # to linearised ones) pressed the lining against the teeth at their new pose until a
             # node was inside (Newton's barrier blocks had no finite value; the fit ended).
-            reached = start.interpolate(target, fraction) if fraction < 1.0 else target
-            self.set_controls(reached)
-            self.u.x.array.reshape(-1, 3)[self.bone_blocks] = self.bone_displacement.x.array.reshape(-1, 3)[
-                self.bone_blocks]
-            self.u.x.scatter_forward()
-            self._put_objects(start)
-            self.solver.controls_changed()
-            held = self._clear_objects(reached)
+            held = 0
+            if self.contact is not None or self.teeth_contact is not None:
+                reached = start.interpolate(target, fraction) if fraction < 1.0 else target
+                self.set_controls(reached)
+                self.u.x.array.reshape(-1, 3)[self.bone_blocks] = self.bone_displacement.x.array.reshape(-1, 3)[
+                    self.bone_blocks]
+                self.u.x.scatter_forward()
+                self._put_objects(start)
+                self.solver.controls_changed()
+                held = self._clear_objects(reached)
             self.set_controls(target)
             ok, iterations, why = self.solver.newton()
             if ok:
