@@ -1,5 +1,6 @@
 """The solver's parts that can be tested alone: the factorisation-reuse policy on scripted Newton
 iterations, and the PETSc options a solver writes under its prefix."""
+import numpy as np
 from petsc4py import PETSc
 import pytest
 
@@ -141,3 +142,32 @@ def test_the_tangent_structure_is_explicit():
     assert problem.solver.tangent.isSymmetricKnown() == (True, True)
     with pytest.raises(ValueError, match="tangent = 'cholesky'"):
         QuasistaticSolver(problem.solver.residual_form, problem.u, problem.bcs, tangent="cholesky")
+
+
+def test_a_factor_is_not_reused_under_other_dirichlet_conditions():
+    """Reuse across solves: the nodes of the slab's middle get a condition of their own, a little
+    displaced (as a contact object holds the lining it carries). The factor of the last tangent
+    has the flesh's rows for them, not the identity, so its corrections would move them off their
+    values (the slab's Newton recovers with fresh factors; next to the teeth, in collision-limited
+    steps, it did not: docs/contact.md). The factor counts as one of other conditions while the
+    condition is added and after it is removed, and Newton reaches the held values."""
+    from dolfinx import fem
+    problem = FaceProblem(slab_model(), reuse_factorization=True)
+    problem.solve(activations={"across": 0.5})
+    solver = problem.solver
+    middle = np.flatnonzero(np.abs(problem.dof_coordinates[:, 0] - 20.0) < 3.0).astype(np.int32)
+    values = fem.Function(problem.V)
+    values.x.array[:] = problem.u.x.array
+    values.x.array.reshape(-1, 3)[middle, 2] += 0.5  # mm up
+    held = fem.dirichletbc(values, middle)
+    solver.factorize()
+    assert solver.factor_distance() == 0.0
+    solver.bcs.append(held)
+    try:
+        assert solver.factor_distance() == np.inf
+        converged, _, reason = solver.newton()
+        assert converged, reason
+        assert solver.bc_error() < 1e-10
+    finally:
+        solver.bcs.remove(held)
+    assert solver.factor_distance() == np.inf

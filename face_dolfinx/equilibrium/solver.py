@@ -451,6 +451,7 @@ class QuasistaticSolver:
         self.linear_iterations = 0     # Krylov iterations (each one solve with the factor) so far
         self._factor_controls_current = False  # the factor holds a tangent of the controls now set
         self.bcs = bcs
+        self._factor_conditions = ()  # the Dirichlet conditions of the factor's tangent
         self.comm = unknown.function_space.mesh.comm
         self.residual_form = compile_form(residual)
         self.jacobian_form = compile_form(
@@ -631,9 +632,16 @@ class QuasistaticSolver:
             # x), preconditioned by the factor of P; the factor is refreshed when Krylov slows.
             A.assemble()
             linear_iterations = snes.getKSP().getIterationNumber()
+        if not self._factor_has_these_conditions():
+            # Its rows of a node held since (a contact object's carried lining) are the flesh's,
+            # not the identity: its corrections would move the held node (measured: 0.4-0.7 mm,
+            # which pressed the lining into the teeth), and of a node released since they would
+            # hold it still.
+            self.reuse_policy.forget_factor()
         if self.reuse_policy.keep_factor(snes.getIterationNumber(), linear_iterations):
             return  # P is untouched, so the PC keeps its factor: a modified Newton iteration
         self.assemble_tangent(P)
+        self._factor_conditions = tuple(self.bcs)
         # A term may modify its Hessian for Newton's corrections (add_newton_correction); the
         # factor of that matrix serves Newton, not the sensitivities (factor_distance).
         exact = True
@@ -664,7 +672,13 @@ class QuasistaticSolver:
         dofs = np.concatenate(dofs) if dofs else np.zeros(0, dtype=np.int32)
         return dofs[dofs < size]
 
+    def _factor_has_these_conditions(self) -> bool:
+        """Whether the factor was made under the Dirichlet conditions now set (the same objects)."""
+        return len(self._factor_conditions) == len(self.bcs) and all(
+            a is b for a, b in zip(self._factor_conditions, self.bcs))
+
     def _factor(self, A: PETSc.Mat) -> None:
+        self._factor_conditions = tuple(self.bcs)
         ksp = self.snes.getKSP()
         ksp.setOperators(A, A)
         ksp.setUp()
@@ -689,7 +703,7 @@ class QuasistaticSolver:
         """Largest distance of a dof of the unknown from the state whose tangent the factor
         holds (0 right after ``factorize``), over all ranks; inf if no factor holds a tangent of
         the controls now set. Collective."""
-        if not (self.reuse_policy.has_factor and self._factor_controls_current):
+        if not (self.reuse_policy.has_factor and self._factor_controls_current and self._factor_has_these_conditions()):
             return math.inf
         self.unknown.vector.copy(self._distance_work)
         self._distance_work.axpy(-1.0, self._factor_state)
