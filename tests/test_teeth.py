@@ -183,6 +183,27 @@ def test_newton_tangent_projects_the_barrier_blocks(pressed):
     assert projected == (MPI.COMM_WORLD.allreduce(negative, op=MPI.SUM) > 0)
 
 
+def test_a_node_inside_the_teeth_fails_the_factorisation_not_the_process(pressed):
+    """A state with a lining node inside the teeth has no finite barrier block there: Newton's
+    projection leaves that block to the tangent instead of raising numpy's LinAlgError (which
+    ended a fit from within PETSc's tangent callback)."""
+    problem = pressed[0]
+    teeth = problem.teeth_contact
+    x = problem.u.vector.copy()
+    gaps = teeth.gaps(x.array_r)
+    obj, node = np.unravel_index(np.argmin(gaps), gaps.shape)
+    normal = teeth.objects[obj].gaps(teeth.positions(x.array_r)[[node]], teeth.poses[obj])[1][0]
+    owned = np.flatnonzero(teeth.surface.owned_nodes == node)
+    if owned.size:  # the rank that owns the node pushes it 0.1 mm inside
+        block = teeth.surface.owned_blocks[owned[0]]
+        x.array[3 * block:3 * block + 3] -= (gaps[obj, node] + 0.1) * normal
+    assert teeth.min_gap(x.array_r) < 0.0
+    matrix = problem.solver.tangent.duplicate()
+    matrix.zeroEntries()
+    teeth.add_hessian(x, matrix, np.zeros(0, dtype=np.int32))
+    teeth.add_newton_correction(x, matrix, np.zeros(0, dtype=np.int32))
+
+
 def test_a_prediction_into_the_teeth_is_pulled_back(model, pressed, caplog):
     """A Gauss-Newton prediction that would put lining nodes inside the teeth (here the pressed
     state's motion from rest, tripled) starts Newton only as far along it as the teeth allow:

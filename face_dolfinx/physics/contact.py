@@ -484,7 +484,9 @@ class ContactPotential:
         teeth): the projected tangent keeps every correction a descent direction. Returns whether
         a block changed (the same on every rank; A is untouched otherwise)."""
         blocks = self._hessian_blocks(x)
-        values, vectors = np.linalg.eigh(blocks)
+        # A node at or inside an object has no finite block (nor residual): the tangent keeps its
+        # NaN for Newton to fail on, rather than numpy raising from within PETSc's callback.
+        values, vectors = np.linalg.eigh(np.where(np.isfinite(blocks), blocks, 0.0))
         # Blocks over a face (b'' n n^T) have two zero eigenvalues that come out as round-off.
         negative = values.min(axis=1) < -ROUND_OFF * np.abs(values).max(axis=1)
         if not negative.any():

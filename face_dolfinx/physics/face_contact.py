@@ -202,7 +202,7 @@ class FaceContactPotential(ContactPotential):
         changed = super().add_newton_correction(x, A, constrained)
         corrections = []
         for active, blocks in self.triangle_blocks(x.array_r):
-            values, vectors = np.linalg.eigh(blocks)
+            values, vectors = np.linalg.eigh(np.where(np.isfinite(blocks), blocks, 0.0))  # as the nodes'
             negative = values.min(axis=1, initial=0.0) < -ROUND_OFF * np.abs(values).max(axis=1, initial=0.0)
             change = np.einsum("nij,nj,nkj->nik", vectors[negative], np.maximum(-values[negative], 0.0), vectors[negative])
             corrections.append((active[negative], change))
