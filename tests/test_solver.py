@@ -148,9 +148,9 @@ def test_a_factor_is_not_reused_under_other_dirichlet_conditions():
     """Reuse across solves: the nodes of the slab's middle get a condition of their own, a little
     displaced (as a contact object holds the lining it carries). The factor of the last tangent
     has the flesh's rows for them, not the identity, so its corrections would move them off their
-    values (the slab's Newton recovers with fresh factors; next to the teeth, in collision-limited
-    steps, it did not: docs/contact.md). The factor counts as one of other conditions while the
-    condition is added and after it is removed, and Newton reaches the held values."""
+    values (the slab's Newton recovers with fresh factors). The factor counts as one of other
+    conditions while the condition is added and after it is removed, and Newton reaches the held
+    values."""
     from dolfinx import fem
     problem = FaceProblem(slab_model(), reuse_factorization=True)
     problem.solve(activations={"across": 0.5})

@@ -633,10 +633,9 @@ class QuasistaticSolver:
             A.assemble()
             linear_iterations = snes.getKSP().getIterationNumber()
         if not self._factor_has_these_conditions():
-            # Its rows of a node held since (a contact object's carried lining) are the flesh's,
-            # not the identity: its corrections would move the held node (measured: 0.4-0.7 mm,
-            # which pressed the lining into the teeth), and of a node released since they would
-            # hold it still.
+            # Its rows of a node held since (the lining a contact object's move carries) are the
+            # flesh's, not the identity: its corrections would move the held node; and of a node
+            # released since they would hold it still.
             self.reuse_policy.forget_factor()
         if self.reuse_policy.keep_factor(snes.getIterationNumber(), linear_iterations):
             return  # P is untouched, so the PC keeps its factor: a modified Newton iteration
