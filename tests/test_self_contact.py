@@ -198,32 +198,6 @@ def test_the_tangents_sparsity_holds_the_lip_pairs(pressed):
     assert info["nz_allocated"] == before and info["mallocs"] == 0
 
 
-def test_held_lip_nodes_keep_identity_rows(pressed):
-    """A contact object's or the teeth's move holds the lining it carries by a Dirichlet condition,
-    lip nodes among it: the lips' Hessian and Newton's correction leave those rows and columns
-    alone (with the lips' rows there, Newton's corrections moved held lining nodes by 0.4-0.7 mm
-    on the bilabial take, into the teeth), and the other pressed lip nodes keep theirs."""
-    lips = pressed.lips
-    x = pressed.u.vector
-    forces = np.linalg.norm(lips.nodal_forces(x.array_r), axis=1)
-    held_nodes = np.argsort(forces)[-4:]  # the four most pressed lip nodes, on whichever rank
-    mine = np.isin(lips.surface.owned_nodes, held_nodes)
-    held = (3 * lips.surface.owned_blocks[mine][:, None] + np.arange(3)).reshape(-1).astype(np.int32)
-    matrix = pressed.solver.tangent.duplicate()
-    matrix.zeroEntries()
-    lips.add_hessian(x, matrix, held)
-    lips.add_newton_correction(x, matrix, held)
-    first = x.getOwnershipRange()[0]
-    for dof in held:
-        assert not np.any(matrix.getRow(first + int(dof))[1])
-    indicator, image = x.duplicate(), x.duplicate()
-    indicator.set(0.0)
-    indicator.array[held] = 1.0
-    matrix.mult(indicator, image)
-    assert np.abs(image.array).max(initial=0.0) == 0.0  # ... and their columns
-    assert matrix.norm() > 0.0
-
-
 def test_activation_columns_with_pressed_lips(pressed, model):
     """dX/da by the solver's factor (the lips' Hessian included) against central differences, at
     lips pressed by the orbicularis oris at 0.9 with the depressor anguli oris at 0.2."""

@@ -41,7 +41,6 @@ import ipctk
 from mpi4py import MPI
 from petsc4py import PETSc
 import numpy as np
-import scipy.sparse
 from dolfinx import fem
 
 from face_dolfinx.alignment.surface import closest_points
@@ -280,22 +279,12 @@ class LipContact:
         b.array.reshape(-1, 3)[self.surface.owned_blocks] += gradient
 
     def add_hessian(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> None:
-        """A += d2E_s/du2 on this rank's rows (assembled); the rows and columns of ``constrained``
-        (owned local dofs, on any rank) are left alone. No bone holds a lip node (checked at
-        set-up), but a contact object's or the teeth's move holds the lining it carries, lip
-        nodes among it: a held node's row must stay the identity's, or the corrections move it."""
-        free = self._free_dofs(x, constrained)
+        """A += d2E_s/du2 on this rank's rows (assembled); rows and columns of Dirichlet dofs are
+        left alone (the lips are free flesh: checked at set-up)."""
         state = self._state(self.positions(x.array_r))
         if len(state.collisions):
-            self._add_matrix(state.hessian(self.potential), A, free)
+            self._add_matrix(state.hessian(self.potential), A)
         A.assemble()
-
-    def _free_dofs(self, x: PETSc.Vec, constrained: np.ndarray):
-        """(3 lip nodes,) 1 for the lip dofs no rank holds, 0 for the held ones, as a diagonal
-        matrix (collective)."""
-        flags = np.zeros(x.getLocalSize())
-        flags[constrained] = 1.0
-        return scipy.sparse.diags((self.surface.gather(flags) < 0.5).reshape(-1).astype(float))
 
     def add_newton_correction(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> bool:
         """A += the change that makes ``add_hessian``'s matrix Newton's: each pair's Hessian
@@ -304,28 +293,22 @@ class LipContact:
         (b' < 0), of size |b'| / d, which grows without bound as the pressed lips close in: the
         tangent then turns indefinite along the lips' sliding, and Newton's corrections there point
         nowhere useful. Returns whether the matrix changed (the same on every rank)."""
-        free = self._free_dofs(x, constrained)
         state = self._state(self.positions(x.array_r))
         change = None
         if len(state.collisions):
-            change = (free @ (state.hessian(self.potential, projected=True) - state.hessian(self.potential))
-                      @ free).tocsc()
+            change = (state.hessian(self.potential, projected=True) - state.hessian(self.potential)).tocsc()
             change.eliminate_zeros()
         # The ranks may differ in the last bits of ipctk's threaded sums: they agree on the answer
         # (and assemble together) by the reduction.
         changed = self.comm.allreduce(change is not None and change.nnz > 0, op=MPI.LOR)
         if changed:
             if change is not None:
-                self._add_matrix(change, A, None)
+                self._add_matrix(change, A)
             A.assemble()
         return changed
 
-    def _add_matrix(self, matrix, A: PETSc.Mat, free) -> None:
-        """A += the lip nodes' (3 nodes, 3 nodes) ``matrix`` (scipy sparse) on this rank's rows,
-        with the rows and columns of the held dofs dropped (``free``: ``_free_dofs``, or None)."""
-        if free is not None:
-            matrix = free @ matrix @ free
-            matrix.eliminate_zeros()
+    def _add_matrix(self, matrix, A: PETSc.Mat) -> None:
+        """A += the lip nodes' (3 nodes, 3 nodes) ``matrix`` (scipy sparse) on this rank's rows."""
         owned_rows = (3 * self.surface.owned_nodes[:, None] + np.arange(3)).reshape(-1)
         global_dof = (3 * self.global_blocks[:, None] + np.arange(3)).reshape(-1).astype(PETSc.IntType)
         local = matrix.tocsr()[owned_rows]
