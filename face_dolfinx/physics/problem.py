@@ -502,7 +502,6 @@ class FaceProblem:
                     self.bone_blocks]
                 self.u.x.scatter_forward()
                 self._put_objects(start)
-                self.solver.controls_changed()
                 held = self._clear_objects(reached)
             self.set_controls(target)
             ok, iterations, why = self.solver.newton()
