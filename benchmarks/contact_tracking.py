@@ -42,12 +42,13 @@ import numpy as np
 
 TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5 times one without
 # What a contact variant may switch off to measure it (docs/contact.md, "Newton with pressed lips"),
-# appended to its name with "+": the lips' exact Hessian in Newton's tangent throughout, and the
+# appended to its name with "+": the lips' exact Hessian in Newton's tangent throughout, the
 # factor refreshed after every iteration that cuts the residual less than ``refresh_contraction``
-# however short the collision-free bound made its step.
-ABLATIONS = ("exact-lips", "contraction-refresh")
+# however short the collision-free bound made its step, and Newton corrections that climb the
+# energy taken (``QuasistaticSolver.refuse_ascent`` off).
+ABLATIONS = ("exact-lips", "contraction-refresh", "ascents")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
-            "contact+exact-lips+contraction-refresh")
+            "contact+exact-lips+contraction-refresh", "contact+ascents")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations")  # QuasistaticSolver's
 
@@ -110,6 +111,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
     problem = tracker.problem
     if "exact-lips" in ablations:
         problem.lips.add_newton_correction = lambda x, A, constrained: False
+    if "ascents" in ablations:
+        problem.solver.refuse_ascent = False
     if "contraction-refresh" in ablations:
         policy = problem.solver.reuse_policy
         record = policy.record_correction

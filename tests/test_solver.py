@@ -1,5 +1,6 @@
 """The solver's parts that can be tested alone: the factorisation-reuse policy on scripted Newton
 iterations, and the PETSc options a solver writes under its prefix."""
+from mpi4py import MPI
 import numpy as np
 from petsc4py import PETSc
 import pytest
@@ -171,3 +172,87 @@ def test_a_factor_is_not_reused_under_other_dirichlet_conditions():
     finally:
         solver.bcs.remove(held)
     assert solver.factor_distance() == np.inf
+
+
+class DoubleWell:
+    """An energy term on one node's z displacement w: a/4 (w^2 - c^2)^2 - f w, a double well whose
+    curvature a c^2 at w = 0 exceeds the block's stiffness at the node, so that the total energy
+    has its minima in the wells and a maximum along w near w = 0. Its exact Hessian a (3 w^2 - c^2) is negative there; Newton's tangent
+    takes it only near the solution (``exact_near_solution``, as the lips' barrier) and the
+    clamped one, max(0, ...), before."""
+
+    exact_near_solution = True
+
+    def __init__(self, space, point, a=50.0, c=1.0, f=0.1):
+        coordinates = space.tabulate_dof_coordinates()
+        owned = space.dofmap.index_map.size_local
+        near = np.flatnonzero(np.linalg.norm(coordinates[:owned] - point, axis=1) < 1e-9)
+        self.comm = space.mesh.comm
+        self.local_dof = 3 * int(near[0]) + 2 if len(near) else None  # z of the node, on its owner
+        self.global_dof = (int(space.dofmap.index_map.local_to_global(near[:1].astype(np.int32))[0]) * 3 + 2
+                           if len(near) else None)
+        self.a, self.c, self.f = a, c, f
+
+    def w(self, x):
+        return x.array_r[self.local_dof] if self.local_dof is not None else 0.0
+
+    def energy(self, x):
+        w = self.w(x)
+        mine = self.a / 4 * (w * w - self.c ** 2) ** 2 - self.f * w if self.local_dof is not None else 0.0
+        return self.comm.allreduce(mine)
+
+    def add_gradient(self, x, b):
+        if self.local_dof is not None:
+            w = self.w(x)
+            b.array[self.local_dof] += self.a * w * (w * w - self.c ** 2) - self.f
+
+    def _add(self, A, value):
+        if self.local_dof is not None:
+            A.setValue(self.global_dof, self.global_dof, value, addv=PETSc.InsertMode.ADD_VALUES)
+        A.assemble()
+
+    def add_hessian(self, x, A, constrained):
+        w = self.w(x)
+        self._add(A, self.a * (3 * w * w - self.c ** 2) if self.local_dof is not None else 0.0)
+
+    def add_newton_correction(self, x, A, constrained):
+        w = self.w(x)
+        exact = self.a * (3 * w * w - self.c ** 2) if self.local_dof is not None else 0.0
+        self._add(A, max(0.0, exact) - exact)
+        return True
+
+    def step_fraction(self, x, step, largest):
+        return 1.0
+
+
+def test_newton_does_not_climb_to_a_maximum_on_an_exact_indefinite_tangent():
+    """A block clamped at x = 0 with a double well on the z displacement of its far corner
+    (``DoubleWell``). From rest the clamped tangent's first correction is small and taken whole,
+    so Newton is near and the next tangent takes the exact Hessian, indefinite there: its
+    correction climbs the energy towards the maximum near w = 0, where Newton would converge
+    (a residual of zero at a maximum of the energy: w = -0.0028 mm before the refusal). Such a
+    correction is refused and solved again with the clamped tangent: Newton ends in a well, at a
+    minimum (w = 0.848 mm: the block's stiffness at the node, about 14 mN/mm, pulls the well in
+    from c = 1 mm)."""
+    import ufl
+    from dolfinx import fem, mesh as dmesh
+    domain = dmesh.create_box(MPI.COMM_WORLD, [np.zeros(3), np.full(3, 10.0)], [4, 4, 4],
+                              dmesh.CellType.tetrahedron)
+    V = fem.VectorFunctionSpace(domain, ("Lagrange", 1))
+    u = fem.Function(V)
+    eps = ufl.sym(ufl.grad(u))
+    dx = ufl.dx(metadata={"quadrature_degree": 2})
+    energy = (10.0 * ufl.inner(eps, eps) + 5.0 * ufl.tr(eps) ** 2) * dx  # kPa: mu 10, lambda 10
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    clamped = fem.locate_dofs_geometrical(V, lambda x: np.isclose(x[0], 0.0))
+    zero = fem.Function(V)
+    well = DoubleWell(V, np.array([10.0, 10.0, 10.0]))
+    solver = QuasistaticSolver(residual, u, [fem.dirichletbc(zero, clamped)], tangent="symmetric",
+                               energy=energy, energy_terms=(well,), step_tolerance=1e-10)
+    converged, _, reason = solver.newton()
+    assert converged, reason
+    w = MPI.COMM_WORLD.allreduce(well.w(u.vector) if well.local_dof is not None else 0.0)
+    # At the maximum |w| is below a micrometre-scale f / (a c^2); the wells lie beyond c / sqrt(3),
+    # where the double well's curvature turns positive.
+    assert abs(w) > well.c / np.sqrt(3.0), w
+    assert solver.refused_exact_tangents > 0
