@@ -127,6 +127,11 @@ STALLED_GUARD_ITERATIONS = 3
 # -DESCENT_ROUND_OFF still counts as descending (round-off near convergence).
 DESCENT_ROUND_OFF = 1e-12
 
+# Continuation gives up when CREEP_LOAD_STEPS load steps in a row, taken or failed, were no
+# longer than CREEP_STEP of the way (``solve_continuation``).
+CREEP_STEP = 1.0 / 128.0
+CREEP_LOAD_STEPS = 16
+
 # mm: a Dirichlet gap this small is closed by moving the bone nodes, not by more lifting.
 SNAP_DISTANCE = 1e-3
 
@@ -868,13 +873,18 @@ class QuasistaticSolver:
         motion of the head). Tries t = 1 at once; on failure halves the step, and doubles it after
         each success. Gives up when a step of 2^-max_halvings of the way fails: a walk that keeps
         progressing with occasional failures goes on (counting every failure stopped the 5x jaw
-        opening of the stability study after six failures spread over its first third).
+        opening of the stability study after six failures spread over its first third); and when
+        CREEP_LOAD_STEPS load steps in a row, taken or failed, were no longer than CREEP_STEP of the
+        way: at that pace the walk would need hundreds of Newton solves (the 5K bilabial take's hard
+        closure crept on in steps of 1/256 for as long as a test suite runs).
         """
         start = time.perf_counter()
         converged_state = self.unknown.vector.copy()
         t, step, newton_total, steps_taken, failures = 0.0, 1.0, 0, 0, 0
         smallest_step = 0.5 ** max_halvings
+        creeping = 0  # load steps in a row no longer than CREEP_STEP
         while t < 1.0:
+            creeping = creeping + 1 if step <= CREEP_STEP else 0
             target = min(1.0, t + step)
             if predictor is not None:
                 predictor(t, target)
@@ -887,14 +897,15 @@ class QuasistaticSolver:
                 step = min(2.0 * step, 1.0 - t) if t < 1.0 else step
                 continue
             failures += 1
-            if step <= smallest_step:
+            if step <= smallest_step or creeping >= CREEP_LOAD_STEPS:
                 converged_state.copy(self.unknown.vector)
                 self.unknown.vector.ghostUpdate(addv=PETSc.InsertMode.INSERT,
                                                 mode=PETSc.ScatterMode.FORWARD)
                 set_controls(t)
                 raise EquilibriumError(
                     f"no equilibrium beyond {t:.4f} of the way to the target controls: a step of "
-                    f"{step:.4g} of the way failed after {failures} failures in all (last: {why}); "
+                    f"{step:.4g} of the way failed after {failures} failures in all and {creeping} "
+                    f"load steps in a row no longer than {CREEP_STEP:g} (last: {why}); "
                     f"the state is left at the last equilibrium")
             if self.comm.rank == 0:
                 log.info("Newton failed at load %.4f (%s, %d iterations); continuation fallback "
