@@ -1,5 +1,8 @@
 """The solver's parts that can be tested alone: the factorisation-reuse policy on scripted Newton
-iterations, and the PETSc options a solver writes under its prefix."""
+iterations, the PETSc options a solver writes under its prefix, Newton on a tangent whose exact
+part is indefinite (a double well), and when continuation gives up (a scripted Newton)."""
+import re
+
 from mpi4py import MPI
 import numpy as np
 from petsc4py import PETSc
@@ -256,3 +259,35 @@ def test_newton_does_not_climb_to_a_maximum_on_an_exact_indefinite_tangent():
     # where the double well's curvature turns positive.
     assert abs(w) > well.c / np.sqrt(3.0), w
     assert solver.refused_exact_tangents > 0
+
+
+def test_continuation_gives_up_on_a_walk_that_only_creeps():
+    """A Newton that converges only for load steps of 1/256 of the way or less (as on the 5K
+    bilabial take's hard closure): continuation would reach the target after some 500 solves;
+    it gives up once 16 load steps in a row were no longer than 1/128, with the state at the last
+    equilibrium. A walk that needs a few small steps and then lengthens them again goes on."""
+    from face_dolfinx.equilibrium.solver import CREEP_LOAD_STEPS, EquilibriumError
+    problem = FaceProblem(slab_model())
+    solver = problem.solver
+    reached, trying, solves = [0.0], [0.0], [0]
+
+    def set_controls(t):
+        trying[0] = t
+
+    def newton(longest):
+        solves[0] += 1
+        if trying[0] - reached[0] <= longest(reached[0]) + 1e-15:
+            reached[0] = trying[0]
+            return True, 1, "converged"
+        return False, 1, "diverged"
+
+    solver.newton = lambda: newton(lambda t: 1.0 / 256.0)
+    with pytest.raises(EquilibriumError, match="load steps in a row no longer than") as refusal:
+        solver.solve_continuation(set_controls)
+    assert int(re.search(r"(\d+) load steps in a row", str(refusal.value)).group(1)) >= CREEP_LOAD_STEPS
+    assert reached[0] < 0.1 and solves[0] < 60
+    # Small steps for a stretch only (a hard bit of the way): the walk goes on to the end.
+    reached[0], solves[0] = 0.0, 0
+    solver.newton = lambda: newton(lambda t: 1.0 / 256.0 if 0.3 <= t < 0.33 else 1.0)
+    report = solver.solve_continuation(set_controls)
+    assert report.converged and reached[0] == 1.0
