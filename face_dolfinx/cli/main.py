@@ -545,7 +545,9 @@ def edit(args) -> None:
     out = pathlib.Path(args.out)
     if out.suffix.lower() != ".csv":
         raise SystemExit(f"--out {out}: an edited animation is written as a .csv table")
-    if out.exists() and not args.overwrite:
+    # Rank 0 decides: the ranks run this command out of step (nothing collective before the
+    # write), and a rank that looked after rank 0 had written refused its own output.
+    if on_rank_0(out.exists, MPI.COMM_WORLD) and not args.overwrite:
         raise SystemExit(f"{out} already exists; pass --overwrite to replace it")
     model = None
     if args.model or args.tets:
