@@ -25,6 +25,7 @@ import numpy as np
 from petsc4py import PETSc
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from contact_tracking import NewtonCount  # noqa: E402
 from provenance import record  # noqa: E402
 from face_dolfinx.capture.synthetic import control_curves, truth_contact_options  # noqa: E402
 from face_dolfinx.equilibrium.solver import EquilibriumError  # noqa: E402
@@ -60,17 +61,10 @@ def run(model, variant: str, frames: range, comm) -> list[dict]:
     rises = EnergyRises(solver)
     solver.snes.setMonitor(rises)
     activations, tmj, head = control_curves(model, "bilabial", 60, head_motion=False)
-    iterations = [0]
-    newton = solver.newton
-
-    def counted():
-        result = newton()
-        iterations[0] += result[1]
-        return result
-    solver.newton = counted
+    newton = NewtonCount(solver)
     rows = []
     for frame in frames:
-        before = dict(its=iterations[0], fact=solver.factorizations, refused=solver.refused_exact_tangents,
+        before = dict(its=newton.iterations, fact=solver.factorizations, refused=solver.refused_exact_tangents,
                       rises=rises.rises)
         controls = dict(activations=activations[frame], cranium=head[frame], jaw=jaw_pose(model.jaw, *tmj[frame]))
         began = time.perf_counter()
@@ -81,7 +75,7 @@ def run(model, variant: str, frames: range, comm) -> list[dict]:
             from_rest = True
             problem.reset_to_rest()
             problem.solve(**controls)
-        rows.append(dict(variant=variant, frame=frame, newton_iterations=iterations[0] - before["its"],
+        rows.append(dict(variant=variant, frame=frame, newton_iterations=newton.iterations - before["its"],
                          factorizations=solver.factorizations - before["fact"],
                          refused_corrections=solver.refused_exact_tangents - before["refused"],
                          energy_rises=rises.rises - before["rises"], from_rest=from_rest,

@@ -467,7 +467,6 @@ class QuasistaticSolver:
         self.bcs = bcs
         self._factor_conditions = ()  # the Dirichlet conditions of the factor's tangent
         self._factor_has_exact_terms = False  # a term's exact Hessian (exact_near_solution) is in it
-        self._exact_terms_refused = False  # while a tangent without them is assembled
         self.refused_exact_tangents = 0  # tangents with exact terms whose correction climbed the energy
         # Whether such corrections are refused (``_refuse_exact_terms``); False only to measure it.
         self.refuse_ascent = True
@@ -609,11 +608,7 @@ class QuasistaticSolver:
         Newton iterations instead of 73)."""
         self.refused_exact_tangents += 1
         self._set_unknown(x)
-        self._exact_terms_refused = True
-        try:
-            self._assemble_newton_tangent(x, self.tangent)
-        finally:
-            self._exact_terms_refused = False
+        self._assemble_newton_tangent(x, self.tangent, exact_terms=False)
         ksp = self.snes.getKSP()
         ksp.solve(self.snes.getFunction()[0], step)
         self.linear_iterations += max(ksp.getIterationNumber(), 1)
@@ -688,9 +683,10 @@ class QuasistaticSolver:
             return  # P is untouched, so the PC keeps its factor: a modified Newton iteration
         self._assemble_newton_tangent(x, P)
 
-    def _assemble_newton_tangent(self, x: PETSc.Vec, P: PETSc.Mat) -> None:
+    def _assemble_newton_tangent(self, x: PETSc.Vec, P: PETSc.Mat, exact_terms: bool = True) -> None:
         """Assemble Newton's tangent at the unknown (which is ``x``) into ``P``; the PC sees a
-        changed matrix and factorises it when the KSP is next set up or solves."""
+        changed matrix and factorises it when the KSP is next set up or solves. ``exact_terms``
+        False: every term takes its Newton correction, near the solution too."""
         self.assemble_tangent(P)
         self._factor_conditions = tuple(self.bcs)
         # A term may modify its Hessian for Newton's corrections (add_newton_correction); the
@@ -699,7 +695,7 @@ class QuasistaticSolver:
         for term in self.energy_terms:
             if not hasattr(term, "add_newton_correction"):
                 continue
-            if self._newton_corrections(term):
+            if not exact_terms or self._newton_corrections(term):
                 exact = not term.add_newton_correction(self.unknown.vector, P, self._constrained_dofs()) and exact
             else:
                 self._factor_has_exact_terms = True
@@ -712,7 +708,7 @@ class QuasistaticSolver:
         """Whether Newton's tangent takes ``term``'s correction: always, or for a term that says
         ``exact_near_solution``, only until Newton is near the solution (its last correction was
         taken whole and moved no dof further than CONVERGING_CORRECTION)."""
-        if not getattr(term, "exact_near_solution", False) or self._exact_terms_refused:
+        if not getattr(term, "exact_near_solution", False):
             return True
         policy = self.reuse_policy
         near = (self.snes.getIterationNumber() > 0 and policy.correction_size < CONVERGING_CORRECTION
