@@ -14,6 +14,7 @@ import ipctk
 import pytest
 import dolfinx.fem.petsc as fem_petsc
 
+from face_dolfinx.capture.synthetic import control_curves, truth_contact_options
 from face_dolfinx.model.bones import jaw_pose
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.points import PointEvaluator
@@ -198,6 +199,48 @@ def test_the_tangents_sparsity_holds_the_lip_pairs(pressed):
     assert info["nz_allocated"] == before and info["mallocs"] == 0
 
 
+def test_held_lip_nodes_keep_the_identitys_rows_and_columns(pressed):
+    """Lip nodes held by a Dirichlet condition (the teeth carry the lining's nodes along when the
+    jaw moves, some of them lip nodes) get no barrier entries in their rows or columns, in the
+    Hessian and in Newton's correction: the tangent's rows and columns of held dofs stay the
+    identity's. The free lip nodes keep theirs."""
+    lips, u = pressed.lips, pressed.u.vector
+    forces = lips.nodal_forces(pressed.u.x.array)
+    touching = np.flatnonzero(np.linalg.norm(forces, axis=1) > 0.0)
+    assert touching.size > 10
+    held = touching[::2]
+    blocks = lips.surface.local_blocks[np.isin(lips.surface.local_nodes, held)]
+    dofs = (3 * blocks[:, None] + np.arange(3)).reshape(-1)
+    constrained = dofs[dofs < u.getLocalSize()].astype(np.int32)
+    on_held, on_free = u.duplicate(), u.duplicate()
+    rng = np.random.default_rng(5 + pressed.comm.rank)
+    for vector, nodes in ((on_held, held), (on_free, np.setdiff1d(touching, held))):
+        vector.set(0.0)
+        mine = np.isin(lips.surface.owned_nodes, nodes)
+        vector.array.reshape(-1, 3)[lips.surface.owned_blocks[mine]] = rng.standard_normal((mine.sum(), 3))
+
+    def columns_and_rows(constrained):
+        out = []
+        for add in (lips.add_hessian, lips.add_newton_correction):
+            A = pressed.solver.tangent.duplicate()
+            A.zeroEntries()
+            add(u, A, constrained)
+            A.assemble()
+            y = u.duplicate()
+            A.mult(on_held, y)
+            out.append(y.norm())  # the held columns
+            A.multTranspose(on_held, y)
+            out.append(y.norm())  # the held rows
+            A.mult(on_free, y)
+            out.append(y.norm())  # the free columns
+        return np.array(out)
+
+    unheld, held_out = columns_and_rows(np.zeros(0, dtype=np.int32)), columns_and_rows(constrained)
+    assert (unheld > 0.0).all()  # the barrier couples the held nodes when nothing holds them
+    assert held_out[[0, 1, 3, 4]].max() == 0.0
+    assert (held_out[[2, 5]] > 0.0).all()
+
+
 def test_activation_columns_with_pressed_lips(pressed, model):
     """dX/da by the solver's factor (the lips' Hessian included) against central differences, at
     lips pressed by the orbicularis oris at 0.9 with the depressor anguli oris at 0.2."""
@@ -276,3 +319,22 @@ def test_tracking_with_contact_builds_the_lips_into_its_problem(model):
     problem = Tracker(model, settings).problem
     assert problem.lips is not None and problem.lips.settings.where == "--contact"
     assert problem.solver.energy_terms == (problem.teeth_contact, problem.lips)
+
+
+def test_the_jaw_carries_the_lining_but_not_the_lips(model):
+    """With the teeth on, a jaw motion carries the lining resting on the teeth along by a Dirichlet
+    condition (``ContactPotential.carry``); some lining nodes are lip nodes, which it leaves free
+    for the lips' barrier. The bilabial take's lips opening and closing again with the jaw (frames
+    5-13 of 60, each solved from the last equilibrium, as the synthetic take's truth is): every
+    frame converges from the last equilibrium, and the lips never pass each other. (Carrying lip
+    nodes, the lower lip's lining moved rigidly with the teeth into the upper lip: frame 12 failed
+    and was solved from rest, 789 Newton iterations in all.)"""
+    problem = FaceProblem(model, **truth_contact_options(model, "lips+teeth", where="test"))
+    activations, tmj, head = control_curves(model, "bilabial", 60, head_motion=False)
+    iterations = []
+    for frame in range(5, 14):
+        report = problem.solve(activations=activations[frame], cranium=head[frame], jaw=jaw_pose(model.jaw, *tmj[frame]))
+        iterations.append(report.newton_iterations)
+        assert report.converged
+        assert problem.lips.min_distance(problem.u.x.array) > 0.0
+    assert max(iterations[-2:]) < 100

@@ -33,8 +33,9 @@ from dataclasses import dataclass
 
 from mpi4py import MPI
 from petsc4py import PETSc
+import ipctk
 import numpy as np
-from dolfinx import fem
+from dolfinx import fem, geometry
 
 from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
@@ -99,6 +100,18 @@ def closing_in(now: np.ndarray, moved: np.ndarray, dhat: float) -> bool:
     """Whether gaps going from ``now`` to ``moved`` (an object's move) lose more than a
     collision-free step may (``CCD_KEEP``) and end closer than PUSH_GAP dhat somewhere."""
     return bool(((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * dhat)).any())
+
+
+def surfaces_cross(points_a: np.ndarray, triangles_a: np.ndarray, points_b: np.ndarray,
+                   triangles_b: np.ndarray) -> bool:
+    """Whether an edge of one triangle surface passes through a triangle of the other (the IPC
+    Toolkit's exact intersection test; each surface's own intersections are not sought)."""
+    vertices = np.asfortranarray(np.vstack([points_a, points_b]), dtype=np.float64)
+    faces = np.asfortranarray(np.vstack([triangles_a, np.asarray(triangles_b) + len(points_a)]), dtype=np.int32)
+    mesh = ipctk.CollisionMesh(vertices, np.asfortranarray(ipctk.edges(faces)), faces)
+    mesh.can_collide = ipctk.make_vertex_patches_filter(
+        np.concatenate([np.zeros(len(points_a), dtype=np.int32), np.ones(len(points_b), dtype=np.int32)]))
+    return bool(ipctk.has_intersections(mesh, vertices))
 
 
 def advanced_contact(obj, pose, points: np.ndarray, steps: np.ndarray, clearance: np.ndarray,
@@ -328,6 +341,21 @@ class ContactSurface:
         self.local_blocks = np.unique(local_triangles)
         self.local_nodes = surface_index(index_map.local_to_global(self.local_blocks))
 
+    def free(self, constrained: np.ndarray, local_size: int) -> np.ndarray:
+        """(num_nodes, 3): whether each dof of the surface's nodes is free of the Dirichlet
+        conditions ``constrained`` (owned local dofs, of any rank; collective)."""
+        flags = np.zeros(local_size)
+        flags[constrained] = 1.0
+        return self.gather(flags) < 0.5
+
+    def flagged(self, blocks: np.ndarray) -> np.ndarray:
+        """(num_nodes,) whether each node is one of the local dof blocks ``blocks`` (owned or
+        ghost) of some rank (collective)."""
+        mine = np.zeros(self.num_nodes)
+        mine[self.local_nodes[np.isin(self.local_blocks, blocks)]] = 1.0
+        self.comm.Allreduce(MPI.IN_PLACE, mine, op=MPI.MAX)
+        return mine > 0.0
+
     def gather(self, values: np.ndarray) -> np.ndarray:
         """(num_nodes, 3) of a blocked dof array (owned part at least), from every rank."""
         mine = np.ascontiguousarray(values.reshape(-1, 3)[self.owned_blocks]).reshape(-1)
@@ -347,6 +375,7 @@ class ContactPotential:
             raise ValueError(f"{settings.where}: dhat and the stiffness must be positive "
                              f"(got {settings.dhat:g} mm, {settings.stiffness:g} kPa)")
         self.settings = settings
+        self.space = space
         self.objects = tuple(settings.objects)
         self.dhat, self.stiffness = settings.dhat, settings.stiffness
         self.surface = ContactSurface(space, facets)
@@ -406,6 +435,43 @@ class ContactPotential:
                 raise ValueError(f"{self.settings.where}: the {obj.describe()} comes within {gap.min():.3g} mm of "
                                  f"{int((gap <= margin).sum())} nodes of the {self.settings.surface} at rest; it must "
                                  f"leave more than {margin:g} mm")
+        self._check_outside_flesh(displacement)
+
+    def _check_outside_flesh(self, displacement: np.ndarray) -> None:
+        """In the rest configuration (``displacement`` zero on every rank; a deformed state is not
+        checked): a clear error if a point of an object (a triangle mesh's vertex, a sphere's
+        centre) lies in a cell of the flesh, or a triangle mesh's surface crosses the contact
+        surface's triangles. Either is an object inside the face with no surface node inside it:
+        smaller than the surface's triangles, or through them between their nodes (an instrument's
+        tip), which the barrier of the nodes would take as a start outside."""
+        comm = self.surface.comm
+        if comm.allreduce(bool(np.any(displacement != 0.0)), op=MPI.LOR):
+            return
+        mesh = self.space.mesh
+        tdim = mesh.topology.dim
+        owned_cells = mesh.topology.index_map(tdim).size_local
+        tree = geometry.BoundingBoxTree(mesh, tdim)
+        for obj, pose in zip(self.objects, self.poses):
+            if isinstance(obj, TriangleMesh):
+                points = np.ascontiguousarray(pose.apply(obj.points), dtype=np.float64)
+            elif isinstance(obj, Sphere):
+                points = pose.translation.reshape(1, 3).astype(np.float64)
+            else:
+                continue  # a half-space holds every point beyond its plane: the nodes' gaps decide
+            cells = geometry.compute_colliding_cells(mesh, geometry.compute_collisions(tree, points), points)
+            mine = np.array([(cells.links(i) < owned_cells).any() for i in range(len(points))], dtype=np.int32)
+            anywhere = np.zeros_like(mine)
+            comm.Allreduce(mine, anywhere, op=MPI.MAX)
+            inside = np.flatnonzero(anywhere)
+            where = f"{self.settings.where}: the {obj.describe()} at {pose.translation.round(3).tolist()}"
+            if inside.size:
+                what = "its centre lies" if len(points) == 1 else f"{inside.size} of its {len(points)} vertices lie"
+                raise ValueError(f"{where}: {what} inside the flesh (e.g. {points[inside[0]].round(3).tolist()}) "
+                                 f"though no node of the {self.settings.surface} is inside it: place it outside")
+            if isinstance(obj, TriangleMesh) and surfaces_cross(self.positions(displacement), self.surface.triangles,
+                                                                points, obj.triangles):
+                raise ValueError(f"{where} crosses the triangles of the {self.settings.surface} between their "
+                                 "nodes (no node inside it): place it outside")
 
     def contact_nodes(self, displacement: np.ndarray) -> int:
         """Number of (object, node) pairs within dhat."""
@@ -578,7 +644,7 @@ class ContactPotential:
         values[self.surface.owned_blocks] = moved[self.surface.owned_nodes]
         return out, np.flatnonzero(held)
 
-    def carry(self, poses, solver, reach: float) -> int:
+    def carry(self, poses, solver, reach: float, free_blocks: np.ndarray | None = None) -> int:
         """Put the objects at ``poses``, carrying along the surface nodes that rest on them: every
         node within ``reach`` (mm) of an object at its present pose, and every farther one that the
         object at its new pose would leave closer than PUSH_GAP * dhat (the teeth closing onto the
@@ -588,13 +654,18 @@ class ContactPotential:
         bones (whose Dirichlet values the solve reaches as well), and the solve that follows
         releases them. A jaw opening with the lining left behind would otherwise drag the lining
         along the teeth in collision-limited steps that also cut the bones' motion short; a node
-        the teeth overrun would be inside them. Returns the Newton iterations it took."""
+        the teeth overrun would be inside them. The nodes of the local dof blocks ``free_blocks``
+        (of any rank) are never held: the lips' nodes, which the lips' barrier must keep out of
+        the other lip (moved rigidly with the lower teeth, the lower lip's lining went through the
+        upper lip). Returns the Newton iterations it took."""
         u = solver.unknown
         x = self.positions(u.x.array)
         gaps = self.gaps(u.x.array, within=reach)
         # A node farther than ``reach`` that an object's new pose overruns goes with that object.
         overrun = self.gaps(u.x.array, poses, within=PUSH_GAP * self.dhat) < PUSH_GAP * self.dhat
         carried = (gaps < reach) | overrun
+        if free_blocks is not None:
+            carried &= ~self.surface.flagged(free_blocks)
         gaps[~carried] = np.inf
         nearest, held = gaps.argmin(axis=0), carried.any(axis=0)
         target = x.copy()

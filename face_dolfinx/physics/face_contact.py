@@ -215,9 +215,7 @@ class FaceContactPotential(ContactPotential):
         """A += per sphere the (m, 9, 9) blocks of the triangles ``active``, the rows of this rank's
         nodes, the rows and columns of ``constrained`` (owned local dofs, on any rank) left alone;
         A assembled."""
-        flags = np.zeros(x.getLocalSize())
-        flags[constrained] = 1.0
-        free = self.surface.gather(flags) < 0.5  # (nodes, 3), every rank's constraints
+        free = self.surface.free(constrained, x.getLocalSize())
         for active, values in blocks:
             for triangle, block in zip(self.surface.triangles[active], values):
                 dofs = (3 * self.global_blocks[triangle][:, None] + np.arange(3)).reshape(-1)

@@ -551,7 +551,9 @@ class FaceProblem:
             # The unknown went along the cranium's change already: so did the teeth it rests on.
             change = controls.cranium.compose(before.cranium.inverse())
             self.teeth_contact.set_poses(tuple(change.compose(pose) for pose in self.teeth_poses(before)))
-            return iterations + self.teeth_contact.carry(self.teeth_poses(controls), self.solver, CARRY_REACH)
+            lips = self.lips.surface.local_blocks if self.lips is not None else None
+            return iterations + self.teeth_contact.carry(self.teeth_poses(controls), self.solver, CARRY_REACH,
+                                                         free_blocks=lips)
         if self.teeth_contact is not None:
             poses = self.teeth_poses(controls)
             if self.teeth_contact.closes_in(self.u.x.array, self.teeth_contact.poses, poses):

@@ -41,6 +41,7 @@ import ipctk
 from mpi4py import MPI
 from petsc4py import PETSc
 import numpy as np
+import scipy.sparse
 from dolfinx import fem
 
 from face_dolfinx.alignment.surface import closest_points
@@ -186,10 +187,7 @@ class LipContact:
 
     def _flagged(self, blocks: np.ndarray) -> np.ndarray:
         """Lip node indices (every rank) of the local blocks ``blocks`` of any rank."""
-        mine = np.zeros(self.surface.num_nodes)
-        mine[self.surface.local_nodes[np.isin(self.surface.local_blocks, blocks)]] = 1.0
-        self.comm.Allreduce(MPI.IN_PLACE, mine, op=MPI.MAX)
-        return np.flatnonzero(mine > 0.0)
+        return np.flatnonzero(self.surface.flagged(blocks))
 
     # -- geometry ----------------------------------------------------------------------------
     def positions(self, displacement: np.ndarray) -> np.ndarray:
@@ -279,11 +277,14 @@ class LipContact:
         b.array.reshape(-1, 3)[self.surface.owned_blocks] += gradient
 
     def add_hessian(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> None:
-        """A += d2E_s/du2 on this rank's rows (assembled); rows and columns of Dirichlet dofs are
-        left alone (the lips are free flesh: checked at set-up)."""
+        """A += d2E_s/du2 on this rank's rows (assembled), the rows and columns of the Dirichlet
+        dofs ``constrained`` (owned local dofs, on any rank) left alone: no bone holds a lip node
+        (checked at set-up), but an object's move holds the skin nodes it pushes out for one
+        solve (``ContactPotential.move_to``), lip nodes too where it presses on the lips."""
+        free = self.surface.free(constrained, x.getLocalSize())
         state = self._state(self.positions(x.array_r))
         if len(state.collisions):
-            self._add_matrix(state.hessian(self.potential), A)
+            self._add_matrix(state.hessian(self.potential), A, free)
         A.assemble()
 
     def add_newton_correction(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> bool:
@@ -293,6 +294,7 @@ class LipContact:
         (b' < 0), of size |b'| / d, which grows without bound as the pressed lips close in: the
         tangent then turns indefinite along the lips' sliding, and Newton's corrections there point
         nowhere useful. Returns whether the matrix changed (the same on every rank)."""
+        free = self.surface.free(constrained, x.getLocalSize())
         state = self._state(self.positions(x.array_r))
         change = None
         if len(state.collisions):
@@ -303,15 +305,18 @@ class LipContact:
         changed = self.comm.allreduce(change is not None and change.nnz > 0, op=MPI.LOR)
         if changed:
             if change is not None:
-                self._add_matrix(change, A)
+                self._add_matrix(change, A, free)
             A.assemble()
         return changed
 
-    def _add_matrix(self, matrix, A: PETSc.Mat) -> None:
-        """A += the lip nodes' (3 nodes, 3 nodes) ``matrix`` (scipy sparse) on this rank's rows."""
+    def _add_matrix(self, matrix, A: PETSc.Mat, free: np.ndarray) -> None:
+        """A += the lip nodes' (3 nodes, 3 nodes) ``matrix`` (scipy sparse) on this rank's rows,
+        only between the ``free`` dofs (lip nodes, 3)."""
+        keep = scipy.sparse.diags(free.reshape(-1).astype(float))
         owned_rows = (3 * self.surface.owned_nodes[:, None] + np.arange(3)).reshape(-1)
         global_dof = (3 * self.global_blocks[:, None] + np.arange(3)).reshape(-1).astype(PETSc.IntType)
-        local = matrix.tocsr()[owned_rows]
+        local = (keep @ matrix @ keep).tocsr()[owned_rows]
+        local.eliminate_zeros()
         if local.nnz:
             # All rows in one call (PETSc loops over them): a Python loop over the rows cost
             # more than the Hessian itself.
