@@ -50,7 +50,7 @@ ABLATIONS = ("exact-lips", "contraction-refresh", "ascents")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
-COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations")  # QuasistaticSolver's
+COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
 
 class TimedTerm:
@@ -106,7 +106,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
 
     base, *ablations = name.split("+")
     contact = base != "no-contact"
-    settings = PRESETS["fast"].updated(dict(contact=contact, krylov=base == "contact-krylov" or None))
+    settings = PRESETS["fast"].updated(dict(contact=contact, krylov=base == "contact-krylov" or None,
+                                            newton_energy_tolerance=args.newton_energy_tolerance))
     tracker = Tracker(model, settings)
     problem = tracker.problem
     if "exact-lips" in ablations:
@@ -225,6 +226,8 @@ def main():
     parser.add_argument("--truth-tets", type=int,
                         help="solve the take's truth on a face of this many tets (default --tets): at 404K "
                              "the truth's own solves would take longer than the tracking")
+    parser.add_argument("--newton-energy-tolerance", type=float, metavar="MJ",
+                        help="fit --newton-energy-tolerance of the contact variants (mN mm; default: the preset's)")
     parser.add_argument("--out", default="runs/contact_tracking", help="folder for the variants' fit folders")
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="log every Newton solve and Gauss-Newton step to standard error (rank 0)")

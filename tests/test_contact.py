@@ -47,11 +47,12 @@ def sphere_at(depth):
     return AffineMap(np.eye(3), CENTRE - [0.0, 0.0, depth])
 
 
-def pressed_slab(comm=MPI.COMM_WORLD, depth=1.5, degree=1, faces=False, at=sphere_at):
+def pressed_slab(comm=MPI.COMM_WORLD, depth=1.5, degree=1, faces=False, at=sphere_at, **options):
     """The slab pressed ``depth`` mm by the sphere posed by ``at``; by default with the nodal barrier
-    (tests/test_face_contact.py: the skin triangles' one, a sphere's default)."""
+    (tests/test_face_contact.py: the skin triangles' one, a sphere's default). ``options``: more
+    ``FaceProblem`` keywords."""
     settings = ContactSettings((Sphere(RADIUS),), (at(-1.0),), dhat=0.05, stiffness=10.0, faces=faces)
-    problem = FaceProblem(skin_slab(comm), degree=degree, contact=settings)
+    problem = FaceProblem(skin_slab(comm), degree=degree, contact=settings, **options)
     problem.solve(activations=ACTIVATIONS, objects=(at(depth),))
     return problem
 
@@ -152,6 +153,22 @@ def test_no_node_enters_the_sphere_at_any_newton_iterate():
     assert 0.0 < problem.contact.min_gap(problem.u.x.array) < problem.contact.dhat
     # Equilibrium of the total energy: the residual, contact included, is at its floor.
     assert problem.residual_norm() < 1e-6
+
+
+def test_newton_energy_tolerance_stops_within_that_energy_of_the_equilibrium():
+    """With contact, ``newton_energy_tolerance`` stops Newton once a correction would release less
+    energy than it (mN mm): the sphere pressed 1.5 mm in ends within that energy of the equilibrium
+    that the step tolerance reaches, in fewer iterations. Without energy terms it is off."""
+    tolerance = 0.1
+    converged, stopped = pressed_slab(depth=0.0), pressed_slab(depth=0.0, newton_energy_tolerance=tolerance)
+    full, early = (problem.solve(objects=(sphere_at(1.5),)) for problem in (converged, stopped))
+    assert full.converged and early.converged
+    assert converged.solver.energy_stops == 0 and stopped.solver.energy_stops > 0
+    assert early.newton_iterations < full.newton_iterations
+    minimum = converged.solver.energy()
+    assert -1e-9 * abs(minimum) < stopped.solver.energy() - minimum < tolerance
+    assert stopped.contact.min_gap(stopped.u.x.array) > 0.0
+    assert FaceProblem(skin_slab(), newton_energy_tolerance=tolerance).solver.energy_tolerance is None
 
 
 def assert_force_balance(slab) -> np.ndarray:

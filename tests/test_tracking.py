@@ -16,6 +16,7 @@ OTHER_VALUES = dict(mode=("paper", "paper"), gn_steps=("5", 5), smoothness=("0.5
                     intraoral_pressure=(None, True), pressure_limit=("50", 50.0),
                     fresh_jacobians=("2", 2), approximate_jacobians=("0.1", 0.1),
                     reuse_factorization=(None, True), newton_tolerance=("1e-3", 1e-3),
+                    newton_energy_tolerance=("5", 5.0),
                     refresh_contraction=("0.3", 0.3), line_search_iterations=("2", 2), contact=(None, True),
                     krylov=(None, True))
 # Settings that need another one changed with them.
@@ -51,9 +52,11 @@ def test_default_preset_is_the_library_default_and_fast_differs_where_documented
     fast = PRESETS["fast"]
     changed = {key for key in RECORD_FIELDS if fast.value(key) != PRESETS["default"].value(key)}
     assert changed == {"gn_steps", "fresh_jacobians", "approximate_jacobians", "reuse_factorization",
-                       "newton_tolerance", "refresh_contraction", "line_search_iterations"}
+                       "newton_tolerance", "newton_energy_tolerance", "refresh_contraction",
+                       "line_search_iterations"}
     assert fast.problem_options() == dict(reuse_factorization=True, refresh_contraction=0.5,
-                                          newton_tolerance=1e-2, line_search_iterations=3, krylov_on_old_factor=False,
+                                          newton_tolerance=1e-2, newton_energy_tolerance=10.0,
+                                          line_search_iterations=3, krylov_on_old_factor=False,
                                           intraoral_pressure=False, lip_contact=None, contact=None)
 
 
@@ -67,6 +70,7 @@ def test_updated_keeps_what_is_none_and_leaves_the_preset_alone():
 
 @pytest.mark.parametrize("key, value, requirement", [
     ("newton_tolerance", 0.0, "give a positive distance in mm"),
+    ("newton_energy_tolerance", -1.0, "give a positive energy in mN mm"),
     ("refresh_contraction", 1.0, "give a factor between 0 and 1"),
     ("line_search_iterations", 0, "give 1 or more"),
     ("fresh_jacobians", -1, "give 0 or more fresh Jacobians per frame"),

@@ -1210,6 +1210,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                    help="Newton stops once a correction moves no node further than this (default "
                         "1e-8 mm; 1e-4 and 1e-3 mm changed no fitted marker or activation error in "
                         "docs/performance.md and save iterations)")
+    p.add_argument("--newton-energy-tolerance", type=float, metavar="MJ",
+                   help="with --contact: Newton also stops once a correction would release less energy than "
+                        "this (mN mm), which the pressed lips' sliding corrections of a millimetre do "
+                        "(default: off; see docs/performance.md, \"Contact in tracking\")")
     p.add_argument("--refresh-contraction", type=float, metavar="R",
                    help=f"with --reuse-factorization: refactorise when a Newton iteration cuts the "
                         f"residual by less than this factor (default {default.refresh_contraction})")

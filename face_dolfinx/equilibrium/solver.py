@@ -17,6 +17,12 @@ guard, 7 / 20 / 9 with it (only the jaw opening still needs the fallback).
 Newton stops when the residual norm is below ``snes_atol`` (mN) or when its last correction moved
 no dof by more than ``step_tolerance`` (mm): a solve started at an equilibrium whose residual sits on
 its round-off floor just above ``snes_atol`` then stops after one tiny step instead of stalling.
+With energy terms (contact) and an ``energy_tolerance`` (mN mm), Newton also stops once its last
+correction du would release less energy than that, by the quadratic model of the tangent it came
+from (R . du / 2, half the squared Newton decrement; the interior-point methods' test): pressed lips
+slide along each other in nearly free modes where a correction moves a node by a millimetre for a
+micro-joule, so that a bound on the correction's largest move keeps Newton iterating on a state
+whose energy, and fit, no longer change.
 
 A ``FactorReusePolicy`` decides when Newton assembles and factorises the tangent and when it keeps
 the factor it has: by default a fresh factor at every iteration until Newton is converging (the
@@ -449,8 +455,8 @@ class QuasistaticSolver:
                  petsc_options: dict | None = None, options_prefix: str = "face_",
                  inversion_guard: InversionGuard | None = None,
                  reuse_policy: FactorReusePolicy | None = None, krylov_on_old_factor: bool = False,
-                 step_tolerance: float = 1e-8, keep_packed_coefficients: bool = False,
-                 energy_terms: tuple = ()):
+                 step_tolerance: float = 1e-8, energy_tolerance: float | None = None,
+                 keep_packed_coefficients: bool = False, energy_terms: tuple = ()):
         if tangent not in TANGENT_STRUCTURES:
             raise ValueError(f"tangent = {tangent!r}: give one of {', '.join(TANGENT_STRUCTURES)}")
         self.unknown = unknown
@@ -460,6 +466,12 @@ class QuasistaticSolver:
         # mm: Newton has converged once a correction moves no dof further than this. 1e-8 mm lies
         # far below anything measurable and above the round-off of the corrections.
         self.step_tolerance = step_tolerance
+        # mN mm: with energy terms, Newton has converged once a correction would release less energy.
+        if energy_tolerance is not None and not energy_tolerance > 0.0:
+            raise ValueError(f"energy_tolerance = {energy_tolerance}: give a positive energy (mN mm) or None")
+        self.energy_tolerance = energy_tolerance if self.energy_terms else None
+        self._released = math.inf  # energy the last correction would release (R . du / 2, mN mm)
+        self.energy_stops = 0  # Newton solves stopped by energy_tolerance
         self.factorizations = 0     # numerical factorisations so far (a cost counter)
         self.residual_evaluations = 0  # residual assemblies so far (matrix-free products included)
         self.linear_iterations = 0     # Krylov iterations (each one solve with the factor) so far
@@ -560,6 +572,8 @@ class QuasistaticSolver:
         iteration limit."""
         if self.refuse_ascent and self._factor_has_exact_terms and not self._descends(step):
             self._refuse_exact_terms(x, step)
+        if self.energy_tolerance is not None:
+            self._released = 0.5 * self.snes.getFunction()[0].dot(step)
         correction_size = step.norm(PETSc.NormType.NORM_INFINITY)
         snapped = self._snap_dirichlet_values(x, step)
         if self.inversion_guard is None and not self.energy_terms:
@@ -637,7 +651,7 @@ class QuasistaticSolver:
         policy = self.reuse_policy
         policy.record_residual(iteration, fnorm)
         if iteration == 0:
-            self._guard_cuts, self._initial_fnorm = 0, fnorm
+            self._guard_cuts, self._initial_fnorm, self._released = 0, fnorm, math.inf
         if not np.isfinite(fnorm):
             return reasons.DIVERGED_FNORM_NAN
         if fnorm < atol:
@@ -652,6 +666,9 @@ class QuasistaticSolver:
             return reasons.CONVERGED_FNORM_RELATIVE
         step_tolerance = 0.01 * self.step_tolerance if converging_phase else self.step_tolerance
         if iteration > 0 and (step_norm < stol * xnorm or policy.correction_size < step_tolerance):
+            return reasons.CONVERGED_SNORM_RELATIVE
+        if iteration > 0 and self.energy_tolerance is not None and abs(self._released) < self.energy_tolerance:
+            self.energy_stops += 1
             return reasons.CONVERGED_SNORM_RELATIVE
         if iteration >= max_it:
             return reasons.DIVERGED_MAX_IT

@@ -189,6 +189,10 @@ class FaceProblem:
     newton_tolerance : mm; Newton has converged once a correction moves no dof further than this
         (``QuasistaticSolver.step_tolerance``). 1e-4 mm changed no fitted marker or activation
         error in docs/performance.md.
+    newton_energy_tolerance : mN mm; with contact, Newton has also converged once a correction would
+        release less energy than this (``QuasistaticSolver.energy_tolerance``): pressed lips slide in
+        nearly free modes whose corrections the step tolerance measures in millimetres
+        (docs/performance.md, "Contact in tracking"). None: the step tolerance alone.
     refresh_contraction : with ``reuse_factorization``, refactorise when a Newton iteration cuts the
         residual by less than this factor (0.25; 0.5 saved factorisations at 404K tets, where one
         costs as much as a dozen iterations, docs/performance.md).
@@ -211,7 +215,7 @@ class FaceProblem:
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
                  petsc_options: dict | None = None, reuse_factorization: bool = False,
                  krylov_on_old_factor: bool = False, newton_tolerance: float = 1e-8,
-                 refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True,
+                 newton_energy_tolerance: float | None = None, refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True,
                  line_search_iterations: int = 1, intraoral_pressure: bool = False,
                  contact: ContactSettings | None = None, lip_contact: LipContactSettings | None = None):
         if line_search_iterations < 1:
@@ -299,7 +303,8 @@ class FaceProblem:
                                         reuse_policy=FactorReusePolicy(across_solves=reuse_factorization,
                                                                        refresh_contraction=refresh_contraction),
                                         krylov_on_old_factor=krylov_on_old_factor,
-                                        step_tolerance=newton_tolerance, keep_packed_coefficients=True,
+                                        step_tolerance=newton_tolerance,
+                                        energy_tolerance=newton_energy_tolerance, keep_packed_coefficients=True,
                                         energy_terms=energy_terms)
         self.controls = self.rest_controls()
         self.set_controls(self.controls)
@@ -325,7 +330,8 @@ class FaceProblem:
         solver = QuasistaticSolver(residual, self.u, self.bcs, tangent=self._tangent_structure,
                                    petsc_options=self._petsc_options,
                                    inversion_guard=self.solver.inversion_guard,
-                                   step_tolerance=self.solver.step_tolerance, keep_packed_coefficients=True,
+                                   step_tolerance=self.solver.step_tolerance,
+                                   energy_tolerance=self.solver.energy_tolerance, keep_packed_coefficients=True,
                                    energy_terms=self.solver.energy_terms)
         mass = compile_form(inertia.virtual_work(ufl.TrialFunction(self.V), v) * dx)
         kinetic_energy = compile_form(inertia.kinetic_energy(levels.velocity) * dx)

@@ -7,8 +7,9 @@ the solver's iterates. Two named presets:
                Gauss-Newton step, Newton to 1e-8 mm: the reference the others are measured against;
   ``fast``     for takes at capture rate (frames 1/60 s apart): modified Newton keeping its factor
                while it halves the residual, one fresh Jacobian per warm frame (others from a factor
-               made within 0.3 mm of the equilibrium), 2 Gauss-Newton steps, Newton to 1e-2 mm and 3
-               secant iterations in its line search. Measured at 403,620 tets on 2 cores: 9.96 s per
+               made within 0.3 mm of the equilibrium), 2 Gauss-Newton steps, Newton to 1e-2 mm (with
+               contact also to a correction releasing under 10 mN mm) and 3 secant iterations in its
+               line search. Measured at 403,620 tets on 2 cores: 9.96 s per
                warm frame against 356.5 s for the paper's loop, with the same marker and activation
                errors (docs/performance.md).
 
@@ -36,6 +37,7 @@ RECORD_FIELDS = {
     "approximate_jacobians": ("fit", "approximate_jacobian_within"),
     "reuse_factorization": ("solver", "reuse_factorization"),
     "newton_tolerance": ("solver", "newton_tolerance"),
+    "newton_energy_tolerance": ("solver", "newton_energy_tolerance"),
     "refresh_contraction": ("solver", "refresh_contraction"),
     "line_search_iterations": ("solver", "line_search_iterations"),
     "krylov": ("solver", "krylov_on_old_factor"),
@@ -58,6 +60,8 @@ class TrackingSettings:
     reuse_factorization: bool = False
     refresh_contraction: float = REFRESH_CONTRACTION
     newton_tolerance: float = 1e-8  # mm: Newton stops once no node moves further in a correction
+    # mN mm: with contact, Newton also stops once a correction would release less energy (None: off)
+    newton_energy_tolerance: float | None = None
     line_search_iterations: int = 1
     # With reuse_factorization: Newton corrections by GMRES preconditioned by the old factor, which
     # then lasts a whole warm frame with contact (docs/performance.md, "Contact in tracking").
@@ -78,6 +82,8 @@ class TrackingSettings:
             ("approximate_jacobians", self.fit.approximate_jacobian_within >= 0,
              "give a distance in mm, 0 or more"),
             ("newton_tolerance", self.newton_tolerance > 0, "give a positive distance in mm"),
+            ("newton_energy_tolerance", self.newton_energy_tolerance is None or self.newton_energy_tolerance > 0,
+             "give a positive energy in mN mm"),
             ("refresh_contraction", 0 < self.refresh_contraction < 1, "give a factor between 0 and 1"),
             ("line_search_iterations", self.line_search_iterations >= 1, "give 1 or more"),
             ("krylov", self.reuse_factorization or not self.krylov_on_old_factor,
@@ -130,5 +136,6 @@ PRESETS = {
     "default": TrackingSettings(),
     "fast": TrackingSettings(
         FitSettings(max_gn_steps=2, max_fresh_jacobians=1, approximate_jacobian_within=0.3),
-        reuse_factorization=True, refresh_contraction=0.5, newton_tolerance=1e-2, line_search_iterations=3),
+        reuse_factorization=True, refresh_contraction=0.5, newton_tolerance=1e-2, newton_energy_tolerance=10.0,
+        line_search_iterations=3),
 }
