@@ -45,10 +45,11 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # appended to its name with "+": the lips' exact Hessian in Newton's tangent throughout, the
 # factor refreshed after every iteration that cuts the residual less than ``refresh_contraction``
 # however short the collision-free bound made its step, and Newton corrections that climb the
-# energy taken (``QuasistaticSolver.refuse_ascent`` off).
-ABLATIONS = ("exact-lips", "contraction-refresh", "ascents")
+# energy taken (``QuasistaticSolver.refuse_ascent`` off), and Newton stopped by the step tolerance
+# alone (``--newton-energy-tolerance`` off; the result files recorded before the preset had it).
+ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
-            "contact+exact-lips+contraction-refresh", "contact+ascents")
+            "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
@@ -114,6 +115,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.lips.add_newton_correction = lambda x, A, constrained: False
     if "ascents" in ablations:
         problem.solver.refuse_ascent = False
+    if "step-stop-only" in ablations:
+        problem.solver.energy_tolerance = None
     if "contraction-refresh" in ablations:
         policy = problem.solver.reuse_policy
         record = policy.record_correction
