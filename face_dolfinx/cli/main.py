@@ -594,12 +594,20 @@ def _contact_row(contact, displacement) -> dict:
 
 
 def _triangle_contact_row(contact, displacement) -> dict:
-    """The skin triangles' contact with spheres (``face_contact.FaceContactPotential``), if any."""
+    """The skin triangles' contact with spheres (``face_contact.FaceContactPotential``) and with
+    triangle meshes' vertices (``object_vertices.ObjectVertexContact``; their smallest gap up to
+    1 mm), if any."""
     from face_dolfinx.physics.face_contact import FaceContactPotential
-    if not isinstance(contact, FaceContactPotential):
-        return {}
-    return dict(contact_triangles=contact.contact_triangles(displacement),
-                min_triangle_gap_mm=round(float(contact.triangle_gaps(displacement).min()), 6))
+    from face_dolfinx.physics.object_vertices import ObjectVertexContact
+    row = {}
+    if isinstance(contact, FaceContactPotential) and any(contact.by_faces):
+        row.update(contact_triangles=contact.contact_triangles(displacement),
+                   min_triangle_gap_mm=round(float(contact.triangle_gaps(displacement).min()), 6))
+    if isinstance(contact, ObjectVertexContact):
+        gaps = np.concatenate(contact.vertex_gaps(displacement, within=1.0))
+        row.update(contact_vertices=contact.contact_vertices(displacement),
+                   min_vertex_gap_mm=round(float(gaps.min()), 6))
+    return row
 
 
 def _move_object(problem, poses, writer, path: pathlib.Path, first_frame: int, render: bool = False) -> list[dict]:

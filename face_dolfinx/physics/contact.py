@@ -260,7 +260,8 @@ class ContactSettings:
     ``teeth``, the model's teeth (``FaceModel.teeth``, each moving with its bone frame) touch the
     facets tagged ``teeth_surface`` (the lining of the lips and cheeks) with the same stiffness and
     their own activation distance ``teeth_dhat`` (mm). With ``faces`` the spheres keep the
-    surface's triangles out, not only its nodes (``face_contact.FaceContactPotential``)."""
+    surface's triangles out, not only its nodes (``face_contact.FaceContactPotential``), and the
+    triangle meshes keep their vertices off those triangles (``object_vertices.ObjectVertexContact``)."""
 
     objects: tuple = ()
     poses: tuple = ()

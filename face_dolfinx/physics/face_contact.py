@@ -32,8 +32,8 @@ against the moving triangle with the minimum distance R + (1 - CCD_KEEP) g_T.
 
 Only spheres need this. A half-space is convex: a triangle whose vertices are outside it is
 outside, and the nodal barrier is already exact for it. A triangle-mesh object keeps the nodal
-barrier (its vertices and edges against the skin's faces are not paired; docs/contact.md,
-"Limits"). Under MPI every rank holds all nodes and triangles of the contact surface (gathered,
+barrier, and its vertices keep off the skin's triangles by ``object_vertices.ObjectVertexContact``
+(its edges against the skin's edges are not paired; docs/contact.md, "Limits"). Under MPI every rank holds all nodes and triangles of the contact surface (gathered,
 in rest-coordinate order by ``ContactSurface``), computes the same triangle terms and adds the
 rows of the nodes it owns (columns anywhere): the same result on any number of ranks.
 """
@@ -349,12 +349,3 @@ def smoothed_pressure(points: np.ndarray, forces: np.ndarray, areas: np.ndarray,
         weights = np.maximum(1.0 - np.linalg.norm(points[neighbours] - points[node], axis=1) / radius, 0.0)
         pressure[node] = weights @ magnitude[neighbours] / (weights @ areas[neighbours])
     return pressure
-
-
-def contact_potential(space, facets, settings) -> ContactPotential:
-    """The contact term of ``settings``: ``FaceContactPotential`` when its ``faces`` option is on and
-    one of its objects is a sphere, else the nodal ``ContactPotential``."""
-    if settings.faces and any(isinstance(obj, Sphere) for obj in settings.objects):
-        return FaceContactPotential(space, facets, settings)
-    return ContactPotential(space, facets, settings)
-
