@@ -212,7 +212,7 @@ def test_simulate_moves_a_mesh_along_a_path(model, shared_dir):
                  "--out", str(out), "--no-render"]) == 0
     rows = json.loads((out / "summary.json").read_text())["object"]
     assert [row["pose"] for row in rows] == [0, 1, 2]
-    # Pressed 2 mm in, the ball's vertices hold the skin's triangles off it (object_vertices.py):
+    # Pressed 2 mm in, the ball's vertices hold the skin's triangles off it (object_features.py):
     # they, not the skin's nodes (0.39 mm away around them), carry the contact; on the small face's
     # flat triangles (edges of several mm) only the vertices next to a triangle's tangent point are
     # within dhat of it.

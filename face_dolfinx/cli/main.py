@@ -595,18 +595,19 @@ def _contact_row(contact, displacement) -> dict:
 
 def _triangle_contact_row(contact, displacement) -> dict:
     """The skin triangles' contact with spheres (``face_contact.FaceContactPotential``) and with
-    triangle meshes' vertices (``object_vertices.ObjectVertexContact``; their smallest gap up to
-    1 mm), if any."""
+    triangle meshes' vertices and edges (``object_features.ObjectFeatureContact``; their smallest
+    gaps up to 1 mm), if any."""
     from face_dolfinx.physics.face_contact import FaceContactPotential
-    from face_dolfinx.physics.object_vertices import ObjectVertexContact
+    from face_dolfinx.physics.object_features import ObjectFeatureContact
     row = {}
     if isinstance(contact, FaceContactPotential) and any(contact.by_faces):
         row.update(contact_triangles=contact.contact_triangles(displacement),
                    min_triangle_gap_mm=round(float(contact.triangle_gaps(displacement).min()), 6))
-    if isinstance(contact, ObjectVertexContact):
-        gaps = np.concatenate(contact.vertex_gaps(displacement, within=1.0))
-        row.update(contact_vertices=contact.contact_vertices(displacement),
-                   min_vertex_gap_mm=round(float(gaps.min()), 6))
+    if isinstance(contact, ObjectFeatureContact):
+        vertices, edges = contact.contact_features(displacement)
+        row.update(contact_vertices=vertices, contact_edges=edges,
+                   min_vertex_gap_mm=round(float(np.concatenate(contact.vertex_gaps(displacement, within=1.0)).min()), 6),
+                   min_edge_gap_mm=round(float(np.concatenate(contact.edge_gaps(displacement, within=1.0)).min()), 6))
     return row
 
 

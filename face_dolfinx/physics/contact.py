@@ -261,7 +261,7 @@ class ContactSettings:
     facets tagged ``teeth_surface`` (the lining of the lips and cheeks) with the same stiffness and
     their own activation distance ``teeth_dhat`` (mm). With ``faces`` the spheres keep the
     surface's triangles out, not only its nodes (``face_contact.FaceContactPotential``), and the
-    triangle meshes keep their vertices off those triangles (``object_vertices.ObjectVertexContact``)."""
+    triangle meshes keep their vertices and edges off the surface (``object_features.ObjectFeatureContact``)."""
 
     objects: tuple = ()
     poses: tuple = ()

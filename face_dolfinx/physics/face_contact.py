@@ -32,10 +32,10 @@ against the moving triangle with the minimum distance R + (1 - CCD_KEEP) g_T.
 
 Only spheres need this. A half-space is convex: a triangle whose vertices are outside it is
 outside, and the nodal barrier is already exact for it. A triangle-mesh object keeps the nodal
-barrier, and its vertices keep off the skin's triangles by ``object_vertices.ObjectVertexContact``
-(its edges against the skin's edges are not paired; docs/contact.md, "Limits"). Under MPI every rank holds all nodes and triangles of the contact surface (gathered,
-in rest-coordinate order by ``ContactSurface``), computes the same triangle terms and adds the
-rows of the nodes it owns (columns anywhere): the same result on any number of ranks.
+barrier, and its vertices and edges keep off the skin by ``object_features.ObjectFeatureContact``.
+Under MPI every rank holds all nodes and triangles of the contact surface (gathered, in
+rest-coordinate order by ``ContactSurface``), computes the same triangle terms and adds the rows
+of the nodes it owns (columns anywhere): the same result on any number of ranks.
 """
 import ipctk
 from petsc4py import PETSc
@@ -304,6 +304,12 @@ class FaceContactPotential(ContactPotential):
                 raise RuntimeError(f"{self.settings.where}: the {obj.describe()} at "
                                    f"{pose.translation.round(3).tolist()}: the skin's triangles could not be pushed "
                                    f"clear of it in {PUSH_ROUNDS} rounds")
+        return self.with_moved_nodes(out, held, x, moved)
+
+    def with_moved_nodes(self, out: np.ndarray, held: np.ndarray, x: np.ndarray,
+                         moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A push-out's displacement ``out`` with the ``moved`` nodes at their positions in ``x``
+        (this rank's owned part written) and the held nodes with them."""
         if not moved.any():
             return out, held
         values = out.reshape(-1, 3)

@@ -48,7 +48,7 @@ from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePol
                                              QuasistaticSolver, SolveReport, compile_form)
 from face_dolfinx.physics.contact import CARRY_REACH, ContactPotential, ContactSettings
 from face_dolfinx.physics.face_contact import FACE_NEWTON_ITERATIONS, FaceContactPotential
-from face_dolfinx.physics.object_vertices import contact_potential
+from face_dolfinx.physics.object_features import contact_potential
 from face_dolfinx.physics.self_contact import LIP_NEWTON_ITERATIONS, LipContact, LipContactSettings, lip_facets
 from face_dolfinx.physics.material import FaceMaterial, FiberSlot
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
@@ -531,7 +531,7 @@ class FaceProblem:
                 self._move_rigidly(old, new)
             # After a failed load step the unknown is back at t0's equilibrium, the objects still at
             # the failed step's poses: they move from t0's (a tip's path from there is what dents
-            # the skin, ObjectVertexContact.push_out).
+            # the skin, ObjectFeatureContact.push_out).
             self._put_objects(start.interpolate(target, t0))
             held.append(self._clear_objects(start.interpolate(target, t1), start.interpolate(target, t0)))
 
