@@ -37,6 +37,16 @@ lips=$RESULTS/contact/lip_calls_5k-20k_np1.jsonl
 $PYTHON benchmarks/provenance.py start $lips
 add $lips $PYTHON benchmarks/lip_contact_calls.py --tets 5000 20000 --compare-with runs/self_contact_944f7b8.py
 add $lips $PYTHON benchmarks/lip_contact_calls.py --tets 5000 --ipctk-threads 1
+# A probe tip and a blade pressed into the cheek, with the instrument's vertices and edges kept off
+# the skin and with the skin's nodes alone (each run writes its own JSON and manifest entry).
+for tets in 5000 20000; do
+  for instrument in tip blade; do
+    $PYTHON benchmarks/instrument.py --tets $tets --instrument $instrument \
+      --out $RESULTS/contact/instrument_${instrument}_$((tets / 1000))k.json
+    $PYTHON benchmarks/instrument.py --tets $tets --instrument $instrument --nodes \
+      --out $RESULTS/contact/instrument_${instrument}_$((tets / 1000))k_nodes.json
+  done
+done
 # A warm tracking frame with lip and teeth contact against the same frame without (fit --fast, one run):
 # modified Newton and Krylov on the old factor.
 record $RESULTS/contact/tracking_5k_np1.jsonl $PYTHON benchmarks/contact_tracking.py --tets 5000 --frames 5 \

@@ -63,10 +63,11 @@ from face_dolfinx.physics.contact import CCD_KEEP, PUSH_GAP, ContactPotential, S
 from face_dolfinx.physics.face_contact import NARROW_PHASE, PUSH_ROUNDS, FaceContactPotential
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
 
-# The narrow phase of a move's paths (``_path_contacts``): the additive CCD of the step bounds
+# The narrow phase of a move's vertex paths (``_path_contacts``): the additive CCD of the step bounds
 # reported the apex of a probe moved from 10 mm to 1 mm off the 5K face's cheek as reaching a skin
 # triangle at 0.997 of its path (its distance never fell below 1 mm), which dented the skin for
-# nothing; tight inclusion does not, and a move tests its paths once.
+# nothing; tight inclusion does not. Edges keep the additive CCD: tight inclusion with a minimum
+# distance ran for minutes on a blade's edge moving along skin edges nearly parallel to it.
 PATH_CCD = ipctk.TightInclusionCCD()
 
 # The features of a skin triangle as masks of its corners: the face, its edges ab, bc, ca, its
@@ -403,7 +404,7 @@ class ObjectFeatureContact(FaceContactPotential):
         for a, e in zip(*self._edge_candidates(features, x, start, x, end, inflation=target)):
             ends, nodes = features.edges[a], self.skin_edges[e]
             d = np.sqrt(ipctk.edge_edge_distance(*start[ends], *x[nodes]))
-            hit, toi = PATH_CCD.edge_edge_ccd(*start[ends], *x[nodes], *end[ends], *x[nodes],
+            hit, toi = NARROW_PHASE.edge_edge_ccd(*start[ends], *x[nodes], *end[ends], *x[nodes],
                                                   min_distance=min(target, (1.0 - CCD_KEEP) * d),
                                                   tmax=first.get(a, (None, 1.0))[1])
             if hit:
