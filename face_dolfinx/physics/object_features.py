@@ -42,11 +42,12 @@ of their distance is tested by the IPC Toolkit's additive CCD with the minimum d
 through the skin.
 
 Moving the object (``push_out``): after the nodes' push-out, the straight path of each vertex and
-each edge from the old pose to the new one is tested against the skin's triangles and edges by the
-minimum distance PUSH_GAP * dhat (or (1 - CCD_KEEP) of the pair's distance, if it rests closer):
-a vertex's path exactly (``path_contacts``), an edge's by the additive CCD; a skin triangle or edge that a path reaches at the time t moves with the rest of
-the path, (1 - t) of its move plus PUSH_GAP * dhat further, the dent the object makes, round after
-round until no path reaches the skin. The dented nodes are held in the solve that spreads the
+each edge from the old pose to the new one is tested against the skin's triangles and edges with
+the minimum distance PUSH_GAP * dhat (or (1 - CCD_KEEP) of the pair's distance, if it rests
+closer): a vertex's path exactly (``path_contacts``), an edge's by the additive CCD. A skin
+triangle or edge that a path reaches at the time t moves with the rest of the path, (1 - t) of its
+move plus PUSH_GAP * dhat further, the dent the object makes, round after round until no path
+reaches the skin. The dented nodes are held in the solve that spreads the
 dent into the flesh (``move_to``), as the pushed nodes are.
 
 Under MPI every rank holds all nodes and triangles of the contact surface (gathered by
