@@ -101,6 +101,15 @@ class FailureCount(logging.Handler):
         if record.getMessage().startswith("Newton failed"):
             self.count += 1
 
+    @classmethod
+    def attached(cls) -> "FailureCount":
+        """A count listening to the equilibrium solver's log."""
+        failures = cls()
+        solver_log = logging.getLogger("face_dolfinx.equilibrium.solver")
+        solver_log.addHandler(failures)
+        solver_log.setLevel(min(solver_log.getEffectiveLevel(), logging.INFO))
+        return failures
+
 
 def cheek_frame(model, site_name: str, u=None) -> tuple[np.ndarray, np.ndarray]:
     """The marker site on the skin displaced by ``u`` (at rest without) and the skin's outward unit
@@ -155,10 +164,7 @@ def main():
                                faces=not args.nodes)
     problem = FaceProblem(model, degree=args.degree, contact=settings)
     contact = problem.contact
-    failures = FailureCount()
-    solver_log = logging.getLogger("face_dolfinx.equilibrium.solver")
-    solver_log.addHandler(failures)
-    solver_log.setLevel(min(solver_log.getEffectiveLevel(), logging.INFO))
+    failures = FailureCount.attached()
     spec = dict(model.expressions[args.expression])
     opening = np.radians(spec.pop("jaw_opening_deg", 0.0))
     report = problem.solve(activations=spec, jaw=jaw_pose(model.jaw, opening) if opening else AffineMap())

@@ -26,7 +26,6 @@ measured; ``--max-poses`` stops after that many poses.
 """
 import argparse
 import json
-import logging
 import pathlib
 import sys
 import time
@@ -135,10 +134,7 @@ def main():
     problem = FaceProblem(model, contact=settings)
     contact = problem.contact
     features = isinstance(contact, ObjectFeatureContact)
-    failures = FailureCount()
-    solver_log = logging.getLogger("face_dolfinx.equilibrium.solver")
-    solver_log.addHandler(failures)
-    solver_log.setLevel(min(solver_log.getEffectiveLevel(), logging.INFO))
+    failures = FailureCount.attached()
     report = None
     if args.expression != "neutral":
         spec = dict(model.expressions[args.expression])
