@@ -70,16 +70,22 @@ def triangle_distances(centre: np.ndarray, corners: np.ndarray) -> tuple[np.ndar
     return distance, weights, offset / np.maximum(distance, 1e-300)[:, None]
 
 
+def distance_from_squared(squared: float, gradient: np.ndarray, hessian: np.ndarray):
+    """The distance d = sqrt(s) with its gradient and Hessian from those of the squared distance s:
+    grad d = grad s / (2 d), hess d = hess s / (2 d) - grad s grad s^T / (4 d^3)."""
+    distance = np.sqrt(squared)
+    return (distance, gradient / (2.0 * distance),
+            hessian / (2.0 * distance) - np.outer(gradient, gradient) / (4.0 * distance ** 3))
+
+
 def distance_derivatives(centre: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Gradient (12,) and Hessian (12, 12) of the distance from a point to a triangle, in the
-    point's coordinates and then the three corners' (the IPC Toolkit's squared distance through
-    d = sqrt(s): grad d = grad s / (2 d), hess d = hess s / (2 d) - grad s grad s^T / (4 d^3))."""
+    point's coordinates and then the three corners' (the IPC Toolkit's squared distance,
+    ``distance_from_squared``)."""
     a, b, c = corners
-    squared = ipctk.point_triangle_distance(centre, a, b, c)
-    gradient = ipctk.point_triangle_distance_gradient(centre, a, b, c)
-    hessian = ipctk.point_triangle_distance_hessian(centre, a, b, c)
-    distance = np.sqrt(squared)
-    return gradient / (2.0 * distance), hessian / (2.0 * distance) - np.outer(gradient, gradient) / (4.0 * distance ** 3)
+    return distance_from_squared(ipctk.point_triangle_distance(centre, a, b, c),
+                                 ipctk.point_triangle_distance_gradient(centre, a, b, c),
+                                 ipctk.point_triangle_distance_hessian(centre, a, b, c))[1:]
 
 
 class FaceContactPotential(ContactPotential):

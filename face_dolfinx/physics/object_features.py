@@ -61,7 +61,7 @@ from scipy.spatial import cKDTree
 
 from face_dolfinx.alignment.surface import closest_points
 from face_dolfinx.physics.contact import CCD_KEEP, PUSH_GAP, ContactPotential, Sphere
-from face_dolfinx.physics.face_contact import NARROW_PHASE, PUSH_ROUNDS, FaceContactPotential
+from face_dolfinx.physics.face_contact import NARROW_PHASE, PUSH_ROUNDS, FaceContactPotential, distance_from_squared
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
 
 # Bisections of a vertex path's first contact (``path_contacts``): the time to 2^-50 of the path.
@@ -72,19 +72,13 @@ PATH_BISECTIONS = 50
 FEATURE_MASKS = np.array([7, 3, 6, 5, 1, 2, 4])
 
 
-def surface_areas(points: np.ndarray, triangles: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each vertex's and each edge's (``edges``: vertex pairs) share of a triangle surface's area: a
-    third of every triangle on it."""
-    corners = points[triangles]
+def surface_areas(obj: TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
+    """Each vertex's and each edge's share of a triangle mesh's area: a third of every triangle on
+    it."""
+    corners = obj.corners
     third = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1) / 6.0
-    vertex = np.bincount(triangles.reshape(-1), np.repeat(third, 3), minlength=len(points))
-    directed = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    key = directed[:, 0] * len(points) + directed[:, 1]
-    edge_key = np.sort(edges, axis=1)
-    edge_key = edge_key[:, 0] * len(points) + edge_key[:, 1]
-    order = np.argsort(edge_key)
-    edge = np.zeros(len(edges))
-    np.add.at(edge, order[np.searchsorted(edge_key[order], key)], np.tile(third, 3))
+    vertex = np.bincount(obj.triangles.reshape(-1), np.repeat(third, 3), minlength=len(obj.points))
+    edge = np.bincount(obj.triangle_edges.reshape(-1), np.repeat(third, 3), minlength=len(obj.edges))
     return vertex, edge
 
 
@@ -92,9 +86,7 @@ def barrier_of_squared_distance(squared: float, gradient: np.ndarray, hessian: n
                                 mollifier=None) -> tuple[float, np.ndarray, np.ndarray]:
     """phi = m b(d), d = sqrt(s), with its gradient and Hessian, from the squared distance s and
     its derivatives (and the mollifier m with its derivatives, or none: m = 1)."""
-    d = np.sqrt(squared)
-    d_gradient = gradient / (2.0 * d)
-    d_hessian = hessian / (2.0 * d) - np.outer(gradient, gradient) / (4.0 * d ** 3)
+    d, d_gradient, d_hessian = distance_from_squared(squared, gradient, hessian)
     b, b1, b2 = ipctk.barrier(d, dhat), ipctk.barrier_first_derivative(d, dhat), ipctk.barrier_second_derivative(d, dhat)
     value, phi_gradient = b, b1 * d_gradient
     phi_hessian = b2 * np.outer(d_gradient, d_gradient) + b1 * d_hessian
@@ -174,7 +166,7 @@ class ObjectFeatureContact(FaceContactPotential):
         self._last_object_terms = None  # (positions, poses, ignored, terms) of the last ``object_terms``
 
     def _object_features(self, obj: TriangleMesh) -> _ObjectFeatures:
-        vertex_areas, edge_areas = surface_areas(obj.points, obj.triangles, obj.edges)
+        vertex_areas, edge_areas = surface_areas(obj)
         count = self.surface.num_nodes
         vertices = np.asfortranarray(np.vstack([self.surface.rest, obj.points]))
         faces = np.asfortranarray(np.vstack([self.surface.triangles, obj.triangles + count]), dtype=np.int32)
