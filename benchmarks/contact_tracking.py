@@ -45,11 +45,13 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # appended to its name with "+": the lips' exact Hessian in Newton's tangent throughout, the
 # factor refreshed after every iteration that cuts the residual less than ``refresh_contraction``
 # however short the collision-free bound made its step, and Newton corrections that climb the
-# energy taken (``QuasistaticSolver.refuse_ascent`` off), and Newton stopped by the step tolerance
-# alone (``--newton-energy-tolerance`` off; the result files recorded before the preset had it).
-ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only")
+# energy taken (``QuasistaticSolver.refuse_ascent`` off), Newton stopped by the step tolerance
+# alone (``--newton-energy-tolerance`` off; the result files recorded before the preset had it), and
+# the contact nodes not relaxed after each correction (``--no-contact-relaxation``; likewise).
+ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "no-relaxation")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
-            "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only")
+            "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
+            "contact+no-relaxation")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
@@ -95,6 +97,29 @@ class NewtonCount:
         solver.newton = counted
 
 
+class RelaxationCount:
+    """Seconds in the solver's relaxation of the contact nodes (``ContactRelaxation``; 0 without
+    it) and its local Newton steps; the contact terms' seconds inside it count in theirs too."""
+
+    def __init__(self, relaxation):
+        self.relaxation, self.seconds = relaxation, 0.0
+        if relaxation is None:
+            return
+        relax = relaxation.relax
+
+        def timed(*args):
+            began = time.perf_counter()
+            try:
+                relax(*args)
+            finally:
+                self.seconds += time.perf_counter() - began
+        relaxation.relax = timed
+
+    @property
+    def local_iterations(self) -> int:
+        return 0 if self.relaxation is None else self.relaxation.local_iterations
+
+
 class OutOfTime(Exception):
     """A variant's ``--max-seconds`` are used up: no frame is started after the one just done."""
 
@@ -108,7 +133,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
     base, *ablations = name.split("+")
     contact = base != "no-contact"
     settings = PRESETS["fast"].updated(dict(contact=contact, krylov=base == "contact-krylov" or None,
-                                            newton_energy_tolerance=args.newton_energy_tolerance))
+                                            newton_energy_tolerance=args.newton_energy_tolerance,
+                                            contact_relaxation="no-relaxation" not in ablations))
     tracker = Tracker(model, settings)
     problem = tracker.problem
     if "exact-lips" in ablations:
@@ -127,7 +153,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
     timers = {label: TimedTerm(term) for label, term in (("lips", problem.lips), ("teeth", problem.teeth_contact))
               if term is not None}
     newton = NewtonCount(problem.solver)
-    last = dict(newton=0, **{c: 0 for c in COUNTERS},
+    relaxation = RelaxationCount(problem.solver.relaxation)
+    last = dict(newton=0, **{c: 0 for c in COUNTERS}, relaxation=(0.0, 0),
                 **{f"{label}.{term}": (0.0, 0) for label, t in timers.items() for term in t.names})
     start = time.perf_counter()
 
@@ -139,6 +166,10 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         for counter in COUNTERS:
             value = getattr(problem.solver, counter)
             row[counter], last[counter] = value - last[counter], value
+        seconds, steps = relaxation.seconds, relaxation.local_iterations
+        row.update(relaxation_seconds=round(comm.allreduce(seconds - last["relaxation"][0], op=MPI.MAX), 2),
+                   relaxation_steps=steps - last["relaxation"][1])
+        last["relaxation"] = (seconds, steps)
         by_term, calls = {}, {}
         for label, timer in timers.items():
             for term in timer.names:
@@ -185,7 +216,7 @@ def summary(rows: dict, args, comm, model, setup_seconds: float, aborted: bool =
             **{f"warm_mean_{key}": mean(key) for key in ("seconds", "newton_iterations", "gn_steps",
                                                            "factorizations", "residual_evaluations",
                                                            "linear_iterations", "contact_seconds", "lips_seconds", "teeth_seconds",
-                                                           "rms_mm")},
+                                                           "relaxation_seconds", "relaxation_steps", "rms_mm")},
             warm_max_activation_error=max((r["activation_error"] for r in warm), default=None),
             warm_mean_lip_pairs=mean("lip_pairs") if warm and warm[0]["lip_pairs"] is not None else None,
             warm_mean_teeth_contact_nodes=(mean("teeth_contact_nodes")

@@ -1239,6 +1239,11 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "the model's teeth (a model without teeth: the lips only, with a note in the log); "
                         "run.json's contact_surfaces records which. The sensitivities include it; exact "
                         "mode only (docs/contact.md)")
+    p.add_argument("--contact-relaxation", action=argparse.BooleanOptionalAction, default=None,
+                   help="with --contact: after each Newton correction the nodes in contact are brought to their "
+                        "own equilibrium by a local Newton, the rest of the face held, so that pressed lips "
+                        "sliding on each other cost fewer factorisations (on with --fast; docs/performance.md, "
+                        "\"Contact in tracking\")")
     p.add_argument("--approximate-jacobians", type=float, metavar="MM",
                    help="a Jacobian may use the last factor of the equilibrium solve if it was made at "
                         "a state this close to the equilibrium, instead of a new factorisation "

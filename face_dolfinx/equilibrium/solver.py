@@ -62,6 +62,8 @@ from dolfinx import fem
 import dolfinx.fem.petsc as fem_petsc
 from dolfinx.fem.assemble import pack_coefficients
 
+from face_dolfinx.equilibrium.relaxation import ContactRelaxation
+
 log = logging.getLogger(__name__)
 
 # MUMPS Cholesky (LDL^T for indefinite tangents): at 212K dofs one factorisation served dozens of
@@ -456,7 +458,8 @@ class QuasistaticSolver:
                  inversion_guard: InversionGuard | None = None,
                  reuse_policy: FactorReusePolicy | None = None, krylov_on_old_factor: bool = False,
                  step_tolerance: float = 1e-8, energy_tolerance: float | None = None,
-                 keep_packed_coefficients: bool = False, energy_terms: tuple = ()):
+                 keep_packed_coefficients: bool = False, energy_terms: tuple = (),
+                 contact_relaxation: bool = False):
         if tangent not in TANGENT_STRUCTURES:
             raise ValueError(f"tangent = {tangent!r}: give one of {', '.join(TANGENT_STRUCTURES)}")
         self.unknown = unknown
@@ -484,8 +487,8 @@ class QuasistaticSolver:
         self.refuse_ascent = True
         self.comm = unknown.function_space.mesh.comm
         self.residual_form = compile_form(residual)
-        self.jacobian_form = compile_form(
-            jacobian if jacobian is not None else ufl.derivative(residual, unknown))
+        jacobian = jacobian if jacobian is not None else ufl.derivative(residual, unknown)
+        self.jacobian_form = compile_form(jacobian)
         self.energy_form = compile_form(energy) if energy is not None else None
         # Only for an owner that calls controls_changed() whenever it changes a coefficient of
         # these forms other than the unknown.
@@ -529,6 +532,14 @@ class QuasistaticSolver:
         self.snes.setJacobian(self._assemble_tangent, self.tangent)
         self.snes.setConvergenceTest(self._converged)
         self._guard_x, self._guard_step = unknown.vector.duplicate(), unknown.vector.duplicate()
+        # Nonlinear elimination of the contact nodes after each correction (relaxation.py).
+        self.relaxation = None
+        if contact_relaxation and self.energy_terms:
+            self.relaxation = ContactRelaxation(
+                jacobian, unknown.function_space, self.energy_terms, self.tangent, unknown.vector,
+                residual=lambda x, b: self._assemble_residual(self.snes, x, b),
+                bound=lambda x, step: min(self._step_bounds(x, step, 1.0)), compile_form=compile_form)
+            self._relaxed = unknown.vector.duplicate()
         self.snes.setLineSearchPreCheck(self._precheck)
         self.snes.setFromOptions()
         self.snes.getKSP().setFromOptions()
@@ -574,28 +585,17 @@ class QuasistaticSolver:
             self._refuse_exact_terms(x, step)
         if self.energy_tolerance is not None:
             self._released = 0.5 * self.snes.getFunction()[0].dot(step)
+        relaxed = self.relaxation is not None
+        if relaxed:
+            self._relax_contact_nodes(x, step)
         correction_size = step.norm(PETSc.NormType.NORM_INFINITY)
         snapped = self._snap_dirichlet_values(x, step)
         if self.inversion_guard is None and not self.energy_terms:
             self.reuse_policy.record_correction(correction_size)
-            return snapped
-        fraction = 1.0
-        if self.inversion_guard is not None:
-            for source, work in ((x, self._guard_x), (step, self._guard_step)):
-                source.copy(work)
-                work.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-            with self._guard_x.localForm() as x_local, self._guard_step.localForm() as step_local:
-                fraction = self.inversion_guard.step_fraction(
-                    x_local.array_r, step_local.array_r, GUARDED_MAX_LAMBDA) / GUARDED_MAX_LAMBDA
+            return snapped or relaxed
+        fraction, bound = self._step_bounds(x, step, GUARDED_MAX_LAMBDA)
         if self.reuse_policy.fresh_factor:
             self._guard_cuts = self._guard_cuts + 1 if fraction < STALLED_GUARD_FRACTION else 0
-        # The terms' bounds (a barrier's collision-free step) cut routinely while contact
-        # settles, with old and fresh factors alike: they count neither as the guard's stall nor
-        # as a stale factor (the residual's contraction, against what a step of that length
-        # achieves, judges the factor).
-        bound = 1.0
-        for term in self.energy_terms:
-            bound = min(bound, term.step_fraction(x, step, GUARDED_MAX_LAMBDA))
         # A step from an old factor that the guard had to cut says the factor is stale, not that
         # Newton stalls: the next iteration refactorises instead.
         # (The bound is of the line search's longest step, GUARDED_MAX_LAMBDA corrections.)
@@ -605,7 +605,38 @@ class QuasistaticSolver:
         if fraction < 1.0:
             step.scale(fraction)
             return True
-        return snapped
+        return snapped or relaxed
+
+    def _step_bounds(self, x: PETSc.Vec, step: PETSc.Vec, largest: float) -> tuple[float, float]:
+        """The fractions t of ``step`` such that x - s t largest step, s in [0, 1], inverts no
+        element (the guard's; 1 without a guard) and stays admissible for every energy term
+        (their collision-free bound). The terms' bounds cut routinely while contact settles, with
+        old and fresh factors alike: they count neither as the guard's stall nor as a stale factor
+        (the residual's contraction, against what a step of that length achieves, judges the
+        factor)."""
+        fraction = 1.0
+        if self.inversion_guard is not None:
+            for source, work in ((x, self._guard_x), (step, self._guard_step)):
+                source.copy(work)
+                work.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+            with self._guard_x.localForm() as x_local, self._guard_step.localForm() as step_local:
+                fraction = self.inversion_guard.step_fraction(
+                    x_local.array_r, step_local.array_r, largest) / largest
+        bound = 1.0
+        for term in self.energy_terms:
+            bound = min(bound, term.step_fraction(x, step, largest))
+        return fraction, bound
+
+    def _relax_contact_nodes(self, x: PETSc.Vec, step: PETSc.Vec) -> None:
+        """Newton's correction ``step`` becomes the way from ``x`` to the point where its
+        admissible part leads, with the contact nodes relaxed there (``ContactRelaxation``)."""
+        y = self._relaxed
+        x.copy(y)
+        y.axpy(-min(self._step_bounds(x, step, 1.0)), step)
+        self.relaxation.relax(y, self._constrained_dofs())
+        x.copy(step)
+        step.axpy(-1.0, y)
+        self._set_unknown(x)
 
     def _descends(self, step: PETSc.Vec) -> bool:
         """Whether the energy falls along the Newton step x - lambda ``step`` (R(x) . step > 0)."""

@@ -357,6 +357,10 @@ class ContactSurface:
         self.comm.Allreduce(MPI.IN_PLACE, mine, op=MPI.MAX)
         return mine > 0.0
 
+    def pushed_blocks(self, forces: np.ndarray) -> np.ndarray:
+        """Local blocks of this rank's nodes whose (num_nodes, 3) ``forces`` are not zero."""
+        return self.owned_blocks[np.any(forces[self.owned_nodes] != 0.0, axis=1)]
+
     def gather(self, values: np.ndarray) -> np.ndarray:
         """(num_nodes, 3) of a blocked dof array (owned part at least), from every rank."""
         mine = np.ascontiguousarray(values.reshape(-1, 3)[self.owned_blocks]).reshape(-1)
@@ -530,6 +534,10 @@ class ContactPotential:
             first, _ = barrier_derivatives(gap, self.dhat)
             np.add.at(gradient, active, (scale * weight * first)[:, None] * normal)
         return gradient
+
+    def contact_blocks(self, displacement: np.ndarray) -> np.ndarray:
+        """Local blocks of this rank's surface nodes that the barrier pushes on."""
+        return self.surface.pushed_blocks(self.nodal_forces(displacement))
 
     def add_gradient(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
         """b += dE_c/du on this rank's dofs."""

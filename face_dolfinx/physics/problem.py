@@ -211,6 +211,10 @@ class FaceProblem:
         passing through (``face_dolfinx.physics.self_contact``, docs/contact.md).
         With ``contact.teeth`` the model's teeth touch the facets tagged ``contact.teeth_surface``
         (``teeth_contact``), moving with their bones.
+    contact_relaxation : with contact, after each Newton correction the nodes a contact term
+        pushes on are brought to their own equilibrium by a local Newton, the rest held
+        (``equilibrium.relaxation``): fewer factorisations where pressed lips slide
+        (docs/performance.md, "Contact in tracking").
     """
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
@@ -218,7 +222,8 @@ class FaceProblem:
                  krylov_on_old_factor: bool = False, newton_tolerance: float = 1e-8,
                  newton_energy_tolerance: float | None = None, refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True,
                  line_search_iterations: int = 1, intraoral_pressure: bool = False,
-                 contact: ContactSettings | None = None, lip_contact: LipContactSettings | None = None):
+                 contact: ContactSettings | None = None, lip_contact: LipContactSettings | None = None,
+                 contact_relaxation: bool = False):
         if line_search_iterations < 1:
             raise ValueError(f"line_search_iterations = {line_search_iterations}: give 1 or more")
         self.model = model
@@ -306,7 +311,7 @@ class FaceProblem:
                                         krylov_on_old_factor=krylov_on_old_factor,
                                         step_tolerance=newton_tolerance,
                                         energy_tolerance=newton_energy_tolerance, keep_packed_coefficients=True,
-                                        energy_terms=energy_terms)
+                                        energy_terms=energy_terms, contact_relaxation=contact_relaxation)
         self.controls = self.rest_controls()
         self.set_controls(self.controls)
 
@@ -333,7 +338,8 @@ class FaceProblem:
                                    inversion_guard=self.solver.inversion_guard,
                                    step_tolerance=self.solver.step_tolerance,
                                    energy_tolerance=self.solver.energy_tolerance, keep_packed_coefficients=True,
-                                   energy_terms=self.solver.energy_terms)
+                                   energy_terms=self.solver.energy_terms,
+                                   contact_relaxation=self.solver.relaxation is not None)
         mass = compile_form(inertia.virtual_work(ufl.TrialFunction(self.V), v) * dx)
         kinetic_energy = compile_form(inertia.kinetic_energy(levels.velocity) * dx)
         return DynamicFace(self, settings, solver, levels, mass, kinetic_energy)

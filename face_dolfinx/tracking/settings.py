@@ -42,6 +42,7 @@ RECORD_FIELDS = {
     "line_search_iterations": ("solver", "line_search_iterations"),
     "krylov": ("solver", "krylov_on_old_factor"),
     "contact": ("solver", "contact"),
+    "contact_relaxation": ("solver", "contact_relaxation"),
 }
 
 
@@ -69,6 +70,9 @@ class TrackingSettings:
     # The lips press on each other instead of passing (physics/self_contact.py) and the lining of
     # the lips and cheeks rests on the model's teeth (physics/contact.py): ``contact_surfaces``.
     contact: bool = False
+    # With contact: the nodes in contact relaxed by a local Newton after each correction
+    # (equilibrium/relaxation.py).
+    contact_relaxation: bool = False
 
     def __post_init__(self):
         checks = (
@@ -137,5 +141,5 @@ PRESETS = {
     "fast": TrackingSettings(
         FitSettings(max_gn_steps=2, max_fresh_jacobians=1, approximate_jacobian_within=0.3),
         reuse_factorization=True, refresh_contraction=0.5, newton_tolerance=1e-2, newton_energy_tolerance=10.0,
-        line_search_iterations=3),
+        line_search_iterations=3, contact_relaxation=True),
 }

@@ -1,0 +1,166 @@
+"""Nonlinear elimination of the nodes in contact: after each Newton correction, the skin nodes that
+a contact term pushes on are brought to their own equilibrium by a small Newton of their own, the
+rest of the unknown held (Lanzkron, Rose and Wilkes 1996, "An analysis of approximate nonlinear
+elimination"; Cai and Keyes 2002).
+
+Why: pressed lips sit micrometres apart on a barrier whose stiffness changes by orders of
+magnitude with the gap, and their nodes slide along each other's facets. A Newton correction of
+the whole face, fresh or from an old factor, predicts that badly: on a warm tracking frame at
+404K tets Newton refactorised at nearly every iteration while the residual hovered on the lips
+(docs/performance.md, "Contact in tracking"). The contact nonlinearity lives on a few thousand
+dofs; the rest of the face is nearly linear between nearby equilibria. So the global correction
+(often from an old factor) moves the face, and the contact nodes then relax in a local problem
+whose tangent (the flesh over the cells around the contact surfaces plus the contact terms'
+Hessians, each projected onto the positive semidefinite ones as Newton's is) is a small sparse
+matrix, factorised in milliseconds. Newton's correction becomes the way from the iterate to the
+relaxed point; its line search, the inversion guard and the collision-free bounds then act on it
+as on any correction.
+
+The local Newton takes a step bounded by the same collision-free step and inversion guard
+(``bound``) and keeps it if the contact nodes' residual fell, halving it otherwise; it stops once
+that residual is below ``reduction`` times the rest's (the global Newton takes it from there) or
+after ``max_iterations``. Each local step has a fresh local tangent: the barrier's stiffness
+changes by orders of magnitude as a gap closes, and a local tangent kept over the steps took 8
+steps to cut the residual of a lip moved 0.01 mm off its pressed equilibrium 2.6-fold.
+
+Under MPI the local problem is distributed as the unknown is (a parallel submatrix, MUMPS on the
+same ranks); every decision is taken on global norms, so all ranks take the same steps.
+"""
+from typing import Callable
+
+from petsc4py import PETSc
+import numpy as np
+import ufl
+from dolfinx import fem
+from dolfinx import mesh as dmesh
+import dolfinx.fem.petsc as fem_petsc
+
+# Local Newton iterations per relaxation, and the contact nodes' residual (against the rest's)
+# below which it stops. Measured on the bilabial take's warm frames (100K face, fit --fast):
+# 8 and 0.1 brought the factorisations per warm frame to 1-3 from 2-6 (docs/performance.md).
+RELAXATION_ITERATIONS = 8
+RELAXATION_REDUCTION = 0.1
+# A local step whose contact residual did not fall is halved this many times before the relaxation
+# stops where it is.
+RELAXATION_HALVINGS = 4
+
+
+class ContactRelaxation:
+    """The local Newton of the contact nodes (module docstring) for a ``QuasistaticSolver``.
+
+    ``jacobian``: the solver's tangent form (UFL), restricted here to the cells around the contact
+    surfaces; ``terms``: the solver's energy terms (each with ``surface``, a
+    ``physics.contact.ContactSurface``, and ``contact_blocks(displacement)``, the owned local
+    blocks it pushes on); ``layout``: a matrix with the solver's tangent layout (its sparsity holds
+    the terms' couplings); ``residual(x, b)``: b = the total residual at x (Dirichlet rows zero);
+    ``bound(x, step)``: the largest t in (0, 1] such that x - s t step stays admissible for s in
+    [0, 1] (collision-free, no inverted element).
+    """
+
+    def __init__(self, jacobian: ufl.Form, space: fem.FunctionSpace, terms: tuple, layout: PETSc.Mat,
+                 template: PETSc.Vec, residual: Callable[[PETSc.Vec, PETSc.Vec], None], bound: Callable[[PETSc.Vec, PETSc.Vec], float],
+                 compile_form: Callable, max_iterations: int = RELAXATION_ITERATIONS,
+                 reduction: float = RELAXATION_REDUCTION):
+        self.space, self.terms = space, tuple(terms)
+        self.residual, self.bound = residual, bound
+        self.max_iterations, self.reduction = max_iterations, reduction
+        self.comm = space.mesh.comm
+        self.relaxations = 0       # relaxations run (a cost counter)
+        self.local_iterations = 0  # local Newton steps taken in all
+        self._jacobian, self._compile = jacobian, compile_form
+        self._form = None  # the tangent over the cells around the contact surfaces, made on first use
+        self._matrix = layout.duplicate()
+        self._matrix.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+        self._ksp = PETSc.KSP().create(self.comm)
+        self._ksp.setType("preonly")
+        pc = self._ksp.getPC()
+        pc.setType("cholesky")
+        pc.setFactorSolverType("mumps")
+        self._r = template.duplicate()
+        self._trial_r = self._r.duplicate()
+        self._step = self._r.duplicate()
+        self._trial = self._r.duplicate()
+        self._first = space.dofmap.index_map.local_range[0] * space.dofmap.index_map_bs
+
+    def _patch_form(self) -> fem.FormMetaClass:
+        """The tangent over this rank's cells that have a node on a contact surface (of any rank)."""
+        flags = fem.Function(self.space)
+        flags.x.array[:] = 0.0
+        for term in self.terms:
+            flags.x.array.reshape(-1, 3)[term.surface.owned_blocks] = 1.0
+        flags.x.scatter_forward()
+        flagged = flags.x.array.reshape(-1, 3)[:, 0] > 0.5
+        cells = self.space.mesh.topology.index_map(3).size_local
+        blocks = self.space.dofmap.list.array.reshape(-1, self.space.dofmap.dof_layout.num_dofs)[:cells]
+        patch = np.flatnonzero(flagged[blocks].any(axis=1)).astype(np.int32)
+        tags = dmesh.meshtags(self.space.mesh, 3, patch, np.ones(len(patch), dtype=np.int32))
+        return self._compile(ufl.Form([integral.reconstruct(subdomain_id=1, subdomain_data=tags)
+                                       for integral in self._jacobian.integrals()]))
+
+    def _local_tangent(self, y: PETSc.Vec, rows: PETSc.IS, constrained: np.ndarray) -> PETSc.Mat:
+        """The tangent's (rows, rows) block at ``y``, the terms' Hessians projected as Newton's."""
+        if self._form is None:
+            self._form = self._patch_form()
+        A = self._matrix
+        A.zeroEntries()
+        fem_petsc.assemble_matrix(A, self._form)
+        A.assemble()
+        for term in self.terms:
+            term.add_hessian(y, A, constrained)
+            if hasattr(term, "add_newton_correction"):
+                term.add_newton_correction(y, A, constrained)
+        K = A.createSubMatrix(rows, rows)
+        K.setOption(PETSc.Mat.Option.SPD, True)
+        return K
+
+    def relax(self, y: PETSc.Vec, constrained: np.ndarray) -> None:
+        """Move the contact nodes of ``y`` (owned values; ``constrained``: the owned local Dirichlet
+        dofs, which stay) towards their equilibrium with the rest of ``y`` held. Collective."""
+        blocks = np.unique(np.concatenate([term.contact_blocks(y.array_r) for term in self.terms]))
+        dofs = np.setdiff1d((3 * blocks[:, None] + np.arange(3)).reshape(-1), constrained)
+        if self.comm.allreduce(len(dofs)) == 0:
+            return
+        self.relaxations += 1
+        rows = PETSc.IS().createGeneral((self._first + dofs).astype(PETSc.IntType), comm=self.comm)
+        self.residual(y, self._r)
+        local = self._r.getSubVector(rows)
+        norm = local.norm()
+        target = self.reduction * np.sqrt(max(self._r.norm() ** 2 - norm ** 2, 0.0))
+        correction = local.duplicate()
+        self._r.restoreSubVector(rows, local)
+        for _ in range(self.max_iterations):
+            if norm <= target:
+                break
+            K = self._local_tangent(y, rows, constrained)
+            self._ksp.reset()
+            self._ksp.setOperators(K)
+            local = self._r.getSubVector(rows)
+            self._ksp.solve(local, correction)
+            K.destroy()
+            descends = local.dot(correction) > 0.0
+            self._r.restoreSubVector(rows, local)
+            if self._ksp.getConvergedReason() < 0 or not descends:
+                break
+            self._step.set(0.0)
+            embedded = self._step.getSubVector(rows)
+            correction.copy(embedded)
+            self._step.restoreSubVector(rows, embedded)
+            fraction = self.bound(y, self._step)
+            for _ in range(RELAXATION_HALVINGS + 1):
+                y.copy(self._trial)
+                self._trial.axpy(-fraction, self._step)
+                self.residual(self._trial, self._trial_r)
+                trial_local = self._trial_r.getSubVector(rows)
+                trial_norm = trial_local.norm()
+                self._trial_r.restoreSubVector(rows, trial_local)
+                if trial_norm < norm:
+                    break
+                fraction *= 0.5
+            else:
+                break
+            self._trial.copy(y)
+            self._trial_r.copy(self._r)
+            norm = trial_norm
+            self.local_iterations += 1
+        correction.destroy()
+        rows.destroy()
