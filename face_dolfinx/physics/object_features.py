@@ -117,10 +117,17 @@ def path_contacts(start: np.ndarray, end: np.ndarray, corners: np.ndarray, clear
         return np.zeros(0)
     low, high = np.zeros(len(start)), np.ones(len(start))
     ratio = (np.sqrt(5.0) - 1.0) / 2.0
+    a, b = high - ratio * (high - low), low + ratio * (high - low)
+    at_a, at_b = distance(a), distance(b)
     for _ in range(PATH_BISECTIONS):
-        a, b = high - ratio * (high - low), low + ratio * (high - low)
-        left = distance(a) < distance(b)
+        # The kept inner point is the new interval's other golden point (ratio^2 = 1 - ratio): one
+        # distance per round.
+        left = at_a < at_b
         high, low = np.where(left, b, high), np.where(left, low, a)
+        new = np.where(left, high - ratio * (high - low), low + ratio * (high - low))
+        at_new = distance(new)
+        a, at_a, b, at_b = (np.where(left, new, b), np.where(left, at_new, at_b),
+                            np.where(left, a, new), np.where(left, at_a, at_new))
     lowest = 0.5 * (low + high)
     hits = np.minimum(distance(lowest), distance(np.ones(len(start)))) < clearance
     # The distance falls from t = 0 to ``lowest``: bisect for where it reaches the clearance.
