@@ -18,8 +18,9 @@ as on any correction.
 
 The local Newton takes a step bounded by the same collision-free step and inversion guard
 (``bound``) and keeps it if the contact nodes' residual fell, halving it otherwise; it stops once
-that residual is below ``reduction`` times the rest's (the global Newton takes it from there) or
-after ``max_iterations``. Each local step has a fresh local tangent: the barrier's stiffness
+that residual is below ``reduction`` times the rest's (the global Newton takes it from there), once
+a local correction moves no dof further than Newton's ``step_tolerance``, or after
+``max_iterations``. Each local step has a fresh local tangent: the barrier's stiffness
 changes by orders of magnitude as a gap closes, and a local tangent kept over the steps took 8
 steps to cut the residual of a lip moved 0.01 mm off its pressed equilibrium 2.6-fold.
 
@@ -51,26 +52,26 @@ class ContactRelaxation:
     ``jacobian``: the solver's tangent form (UFL), restricted here to the cells around the contact
     surfaces; ``terms``: the solver's energy terms (each with ``surface``, a
     ``physics.contact.ContactSurface``, and ``contact_blocks(displacement)``, the owned local
-    blocks it pushes on); ``layout``: a matrix with the solver's tangent layout (its sparsity holds
-    the terms' couplings); ``residual(x, b)``: b = the total residual at x (Dirichlet rows zero);
-    ``bound(x, step)``: the largest t in (0, 1] such that x - s t step stays admissible for s in
-    [0, 1] (collision-free, no inverted element).
+    blocks it pushes on); ``template``: a vector like the unknown's; ``residual(x, b)``: b = the
+    total residual at x (Dirichlet rows zero); ``bound(x, step)``: the largest t in (0, 1] such
+    that x - s t step stays admissible for s in [0, 1] (collision-free, no inverted element);
+    ``compile_form(form)`` and ``create_matrix(form)``: the solver's (a matrix whose sparsity also
+    holds the terms' couplings); ``step_tolerance``: Newton's (mm).
     """
 
-    def __init__(self, jacobian: ufl.Form, space: fem.FunctionSpace, terms: tuple, layout: PETSc.Mat,
-                 template: PETSc.Vec, residual: Callable[[PETSc.Vec, PETSc.Vec], None], bound: Callable[[PETSc.Vec, PETSc.Vec], float],
-                 compile_form: Callable, max_iterations: int = RELAXATION_ITERATIONS,
-                 reduction: float = RELAXATION_REDUCTION):
+    def __init__(self, jacobian: ufl.Form, space: fem.FunctionSpace, terms: tuple, template: PETSc.Vec,
+                 residual: Callable[[PETSc.Vec, PETSc.Vec], None], bound: Callable[[PETSc.Vec, PETSc.Vec], float],
+                 compile_form: Callable, create_matrix: Callable, step_tolerance: float,
+                 max_iterations: int = RELAXATION_ITERATIONS, reduction: float = RELAXATION_REDUCTION):
         self.space, self.terms = space, tuple(terms)
+        self.step_tolerance = step_tolerance
         self.residual, self.bound = residual, bound
         self.max_iterations, self.reduction = max_iterations, reduction
         self.comm = space.mesh.comm
         self.relaxations = 0       # relaxations run (a cost counter)
         self.local_iterations = 0  # local Newton steps taken in all
-        self._jacobian, self._compile = jacobian, compile_form
-        self._form = None  # the tangent over the cells around the contact surfaces, made on first use
-        self._matrix = layout.duplicate()
-        self._matrix.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+        self._form = compile_form(self._patch_form(jacobian))
+        self._matrix = create_matrix(self._form)
         self._ksp = PETSc.KSP().create(self.comm)
         self._ksp.setType("preonly")
         pc = self._ksp.getPC()
@@ -82,8 +83,8 @@ class ContactRelaxation:
         self._trial = self._r.duplicate()
         self._first = space.dofmap.index_map.local_range[0] * space.dofmap.index_map_bs
 
-    def _patch_form(self) -> fem.FormMetaClass:
-        """The tangent over this rank's cells that have a node on a contact surface (of any rank)."""
+    def _patch_form(self, jacobian: ufl.Form) -> ufl.Form:
+        """``jacobian`` over this rank's cells that have a node on a contact surface (of any rank)."""
         flags = fem.Function(self.space)
         flags.x.array[:] = 0.0
         for term in self.terms:
@@ -94,13 +95,10 @@ class ContactRelaxation:
         blocks = self.space.dofmap.list.array.reshape(-1, self.space.dofmap.dof_layout.num_dofs)[:cells]
         patch = np.flatnonzero(flagged[blocks].any(axis=1)).astype(np.int32)
         tags = dmesh.meshtags(self.space.mesh, 3, patch, np.ones(len(patch), dtype=np.int32))
-        return self._compile(ufl.Form([integral.reconstruct(subdomain_id=1, subdomain_data=tags)
-                                       for integral in self._jacobian.integrals()]))
+        return ufl.Form([integral.reconstruct(subdomain_id=1, subdomain_data=tags) for integral in jacobian.integrals()])
 
     def _local_tangent(self, y: PETSc.Vec, rows: PETSc.IS, constrained: np.ndarray) -> PETSc.Mat:
         """The tangent's (rows, rows) block at ``y``, the terms' Hessians projected as Newton's."""
-        if self._form is None:
-            self._form = self._patch_form()
         A = self._matrix
         A.zeroEntries()
         fem_petsc.assemble_matrix(A, self._form)
@@ -139,7 +137,12 @@ class ContactRelaxation:
             K.destroy()
             descends = local.dot(correction) > 0.0
             self._r.restoreSubVector(rows, local)
-            if self._ksp.getConvergedReason() < 0 or not descends:
+            # A correction that moves no dof further than Newton's step tolerance is one at which
+            # Newton stops: near the solution the rest's residual falls towards round-off, and a
+            # tenth of it kept the local Newton of a 404K frame's converged solves going for
+            # all its steps.
+            small = correction.norm(PETSc.NormType.NORM_INFINITY) < self.step_tolerance
+            if self._ksp.getConvergedReason() < 0 or not descends or small:
                 break
             self._step.set(0.0)
             embedded = self._step.getSubVector(rows)

@@ -498,10 +498,7 @@ class QuasistaticSolver:
         self._residual_vector = fem_petsc.create_vector(self.residual_form)
         self._residual_work = self._residual_vector.duplicate()
         self.tangent_structure = tangent
-        self.tangent = fem_petsc.create_matrix(self.jacobian_form)
-        coupled = [term.coupled_blocks() for term in self.energy_terms if hasattr(term, "coupled_blocks")]
-        if coupled:
-            self.tangent = widened_tangent(self.tangent, self.jacobian_form, np.concatenate(coupled))
+        self.tangent = self._create_tangent(self.jacobian_form)
         if tangent != "general":
             self.tangent.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         # "spd" makes MUMPS factorise without numerical pivoting (SYM = 1): 4.4-5.0 s instead of
@@ -536,13 +533,21 @@ class QuasistaticSolver:
         self.relaxation = None
         if contact_relaxation and self.energy_terms:
             self.relaxation = ContactRelaxation(
-                jacobian, unknown.function_space, self.energy_terms, self.tangent, unknown.vector,
+                jacobian, unknown.function_space, self.energy_terms, unknown.vector,
                 residual=lambda x, b: self._assemble_residual(self.snes, x, b),
-                bound=lambda x, step: min(self._step_bounds(x, step, 1.0)), compile_form=compile_form)
+                bound=lambda x, step: min(self._step_bounds(x, step, 1.0)),
+                compile_form=compile_form, create_matrix=self._create_tangent,
+                step_tolerance=self.step_tolerance)
             self._relaxed = unknown.vector.duplicate()
         self.snes.setLineSearchPreCheck(self._precheck)
         self.snes.setFromOptions()
         self.snes.getKSP().setFromOptions()
+
+    def _create_tangent(self, form: fem.FormMetaClass) -> PETSc.Mat:
+        """A matrix for ``form``'s tangent whose sparsity also holds the energy terms' couplings."""
+        A = fem_petsc.create_matrix(form)
+        coupled = [term.coupled_blocks() for term in self.energy_terms if hasattr(term, "coupled_blocks")]
+        return widened_tangent(A, form, np.concatenate(coupled)) if coupled else A
 
     # -- callbacks ---------------------------------------------------------------------------
     def _set_unknown(self, x: PETSc.Vec) -> None:
