@@ -53,6 +53,12 @@ record $RESULTS/contact/tracking_5k_np1.jsonl $PYTHON benchmarks/contact_trackin
   --variants no-contact contact contact-krylov --max-seconds 600 --abort-seconds 2400
 record $RESULTS/contact/tracking_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py --tets 400000 \
   --truth-tets 20000 --frames 3 --variants no-contact contact-krylov contact --max-seconds 1200 --abort-seconds 5400
+# ... with the nodes in contact relaxed after each Newton correction (fit --fast's --contact-relaxation),
+# and without it, at 5K.
+record $RESULTS/contact/tracking_5k_np1_relaxation.jsonl $PYTHON benchmarks/contact_tracking.py --tets 5000 \
+  --frames 5 --variants no-contact contact contact+no-relaxation
+record $RESULTS/contact/tracking_404k_np2_relaxation_stop.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --frames 4 --variants no-contact contact --max-seconds 2400 --abort-seconds 5400
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

@@ -18,9 +18,10 @@ as on any correction.
 
 The local Newton takes a step bounded by the same collision-free step and inversion guard
 (``bound``) and keeps it if the contact nodes' residual fell, halving it otherwise; it stops once
-that residual is below ``reduction`` times the rest's (the global Newton takes it from there), once
-a local correction moves no dof further than Newton's ``step_tolerance``, or after
-``max_iterations``. Each local step has a fresh local tangent: the barrier's stiffness
+that residual is below ``reduction`` times the rest's (the global Newton takes it from there) or
+after ``max_iterations``. (Stopping it also once a local correction moved no dof further than
+Newton's step tolerance made the 404K warm frames cost 7.1 times the frame without contact instead
+of 5.6: docs/performance.md.) Each local step has a fresh local tangent: the barrier's stiffness
 changes by orders of magnitude as a gap closes, and a local tangent kept over the steps took 8
 steps to cut the residual of a lip moved 0.01 mm off its pressed equilibrium 2.6-fold.
 
@@ -37,8 +38,8 @@ from dolfinx import mesh as dmesh
 import dolfinx.fem.petsc as fem_petsc
 
 # Local Newton iterations per relaxation, and the contact nodes' residual (against the rest's)
-# below which it stops. Measured on the bilabial take's warm frames (100K face, fit --fast):
-# 8 and 0.1 brought the factorisations per warm frame to 1-3 from 2-6 (docs/performance.md).
+# below which it stops: with 8 and 0.1, 4-7 factorisations per warm 404K tracking frame with lip
+# and teeth contact instead of 10-25 (docs/performance.md, "Contact in tracking").
 RELAXATION_ITERATIONS = 8
 RELAXATION_REDUCTION = 0.1
 # A local step whose contact residual did not fall is halved this many times before the relaxation
@@ -56,15 +57,14 @@ class ContactRelaxation:
     total residual at x (Dirichlet rows zero); ``bound(x, step)``: the largest t in (0, 1] such
     that x - s t step stays admissible for s in [0, 1] (collision-free, no inverted element);
     ``compile_form(form)`` and ``create_matrix(form)``: the solver's (a matrix whose sparsity also
-    holds the terms' couplings); ``step_tolerance``: Newton's (mm).
+    holds the terms' couplings).
     """
 
     def __init__(self, jacobian: ufl.Form, space: fem.FunctionSpace, terms: tuple, template: PETSc.Vec,
                  residual: Callable[[PETSc.Vec, PETSc.Vec], None], bound: Callable[[PETSc.Vec, PETSc.Vec], float],
-                 compile_form: Callable, create_matrix: Callable, step_tolerance: float,
+                 compile_form: Callable, create_matrix: Callable,
                  max_iterations: int = RELAXATION_ITERATIONS, reduction: float = RELAXATION_REDUCTION):
         self.space, self.terms = space, tuple(terms)
-        self.step_tolerance = step_tolerance
         self.residual, self.bound = residual, bound
         self.max_iterations, self.reduction = max_iterations, reduction
         self.comm = space.mesh.comm
@@ -137,12 +137,7 @@ class ContactRelaxation:
             K.destroy()
             descends = local.dot(correction) > 0.0
             self._r.restoreSubVector(rows, local)
-            # A correction that moves no dof further than Newton's step tolerance is one at which
-            # Newton stops: near the solution the rest's residual falls towards round-off, and a
-            # tenth of it kept the local Newton of a 404K frame's converged solves going for
-            # all its steps.
-            small = correction.norm(PETSc.NormType.NORM_INFINITY) < self.step_tolerance
-            if self._ksp.getConvergedReason() < 0 or not descends or small:
+            if self._ksp.getConvergedReason() < 0 or not descends:
                 break
             self._step.set(0.0)
             embedded = self._step.getSubVector(rows)

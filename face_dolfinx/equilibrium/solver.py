@@ -536,8 +536,7 @@ class QuasistaticSolver:
                 jacobian, unknown.function_space, self.energy_terms, unknown.vector,
                 residual=lambda x, b: self._assemble_residual(self.snes, x, b),
                 bound=lambda x, step: min(self._step_bounds(x, step, 1.0)),
-                compile_form=compile_form, create_matrix=self._create_tangent,
-                step_tolerance=self.step_tolerance)
+                compile_form=compile_form, create_matrix=self._create_tangent)
             self._relaxed = unknown.vector.duplicate()
         self.snes.setLineSearchPreCheck(self._precheck)
         self.snes.setFromOptions()
