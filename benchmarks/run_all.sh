@@ -57,7 +57,7 @@ record $RESULTS/contact/tracking_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/c
 # and without it, at 5K.
 record $RESULTS/contact/tracking_5k_np1_relaxation.jsonl $PYTHON benchmarks/contact_tracking.py --tets 5000 \
   --frames 5 --variants no-contact contact contact+no-relaxation
-record $RESULTS/contact/tracking_404k_np2_relaxation_stop.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+record $RESULTS/contact/tracking_404k_np2_relaxation_patch_matrix.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --frames 4 --variants no-contact contact --max-seconds 2400 --abort-seconds 5400
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.

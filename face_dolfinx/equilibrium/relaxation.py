@@ -20,8 +20,7 @@ The local Newton takes a step bounded by the same collision-free step and invers
 (``bound``) and keeps it if the contact nodes' residual fell, halving it otherwise; it stops once
 that residual is below ``reduction`` times the rest's (the global Newton takes it from there) or
 after ``max_iterations``. (Stopping it also once a local correction moved no dof further than
-Newton's step tolerance made the 404K warm frames cost 7.1 times the frame without contact instead
-of 5.6: docs/performance.md.) Each local step has a fresh local tangent: the barrier's stiffness
+Newton's step tolerance left more factorisations in the 404K warm frames: docs/performance.md.) Each local step has a fresh local tangent: the barrier's stiffness
 changes by orders of magnitude as a gap closes, and a local tangent kept over the steps took 8
 steps to cut the residual of a lip moved 0.01 mm off its pressed equilibrium 2.6-fold.
 
@@ -38,7 +37,7 @@ from dolfinx import mesh as dmesh
 import dolfinx.fem.petsc as fem_petsc
 
 # Local Newton iterations per relaxation, and the contact nodes' residual (against the rest's)
-# below which it stops: with 8 and 0.1, 4-7 factorisations per warm 404K tracking frame with lip
+# below which it stops: with 8 and 0.1, 4-14 factorisations per warm 404K tracking frame with lip
 # and teeth contact instead of 10-25 (docs/performance.md, "Contact in tracking").
 RELAXATION_ITERATIONS = 8
 RELAXATION_REDUCTION = 0.1
