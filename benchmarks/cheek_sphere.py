@@ -110,6 +110,13 @@ class FailureCount(logging.Handler):
         solver_log.setLevel(min(solver_log.getEffectiveLevel(), logging.INFO))
         return failures
 
+    def solve(self, problem, pose) -> tuple:
+        """``problem`` solved with its one object at ``pose``, counting from 0: (report, seconds)."""
+        self.count = 0
+        started = time.perf_counter()
+        report = problem.solve(objects=(pose,))
+        return report, time.perf_counter() - started
+
 
 def cheek_frame(model, site_name: str, u=None) -> tuple[np.ndarray, np.ndarray]:
     """The marker site on the skin displaced by ``u`` (at rest without) and the skin's outward unit
@@ -198,10 +205,7 @@ def main():
         pose = AffineMap(np.eye(3), site + (radius - depth) * normal)
         iterate_gaps.clear()
         iterate_dips.clear()
-        failures.count = 0
-        started = time.perf_counter()
-        report = problem.solve(objects=(pose,))
-        seconds = time.perf_counter() - started
+        report, seconds = failures.solve(problem, pose)
         u = problem.u.x.array
         gap, node = min(iterate_gaps) if iterate_gaps else (contact.min_gap(u), 0)
         forces = contact.nodal_forces(u)

@@ -165,10 +165,7 @@ def main():
     for index, depth in enumerate(depths):
         pose = AffineMap(frame, site - depth * normal)
         iterate_gaps.clear()
-        failures.count = 0
-        started = time.perf_counter()
-        report = problem.solve(objects=(pose,))
-        seconds = time.perf_counter() - started
+        report, seconds = failures.solve(problem, pose)
         u = problem.u.x.array
         on_instrument = contact.nodal_forces(u).sum(axis=0)
         moved = skin_points + displacement_at(problem.u, skin_points)  # collective

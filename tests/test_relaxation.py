@@ -87,7 +87,7 @@ def test_relaxing_cuts_the_contact_nodes_residual_and_holds_every_other_dof(rela
     owned = np.isin(lips.surface.owned_nodes, lips.lower_nodes)
     moved.array.reshape(-1, 3)[lips.surface.owned_blocks[owned]] -= 0.01 * lips.up
     contact_dofs = np.zeros(x.getLocalSize(), dtype=bool)
-    contact_dofs.reshape(-1, 3)[lips.contact_blocks(moved.array_r)] = True
+    contact_dofs.reshape(-1, 3)[lips.surface.pushed_blocks(lips.nodal_forces(moved.array_r))] = True
     residual = x.duplicate()
 
     def residual_norms(state):

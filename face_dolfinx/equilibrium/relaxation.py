@@ -51,8 +51,8 @@ class ContactRelaxation:
 
     ``jacobian``: the solver's tangent form (UFL), restricted here to the cells around the contact
     surfaces; ``terms``: the solver's energy terms (each with ``surface``, a
-    ``physics.contact.ContactSurface``, and ``contact_blocks(displacement)``, the owned local
-    blocks it pushes on); ``template``: a vector like the unknown's; ``residual(x, b)``: b = the
+    ``physics.contact.ContactSurface``, and ``nodal_forces(displacement)``, its force on each of
+    the surface's nodes); ``template``: a vector like the unknown's; ``residual(x, b)``: b = the
     total residual at x (Dirichlet rows zero); ``bound(x, step)``: the largest t in (0, 1] such
     that x - s t step stays admissible for s in [0, 1] (collision-free, no inverted element);
     ``compile_form(form)`` and ``create_matrix(form)``: the solver's (a matrix whose sparsity also
@@ -67,7 +67,6 @@ class ContactRelaxation:
         self.residual, self.bound = residual, bound
         self.max_iterations, self.reduction = max_iterations, reduction
         self.comm = space.mesh.comm
-        self.relaxations = 0       # relaxations run (a cost counter)
         self.local_iterations = 0  # local Newton steps taken in all
         self._form = compile_form(self._patch_form(jacobian))
         self._matrix = create_matrix(self._form)
@@ -113,11 +112,11 @@ class ContactRelaxation:
     def relax(self, y: PETSc.Vec, constrained: np.ndarray) -> None:
         """Move the contact nodes of ``y`` (owned values; ``constrained``: the owned local Dirichlet
         dofs, which stay) towards their equilibrium with the rest of ``y`` held. Collective."""
-        blocks = np.unique(np.concatenate([term.contact_blocks(y.array_r) for term in self.terms]))
+        blocks = np.unique(np.concatenate([term.surface.pushed_blocks(term.nodal_forces(y.array_r))
+                                           for term in self.terms]))
         dofs = np.setdiff1d((3 * blocks[:, None] + np.arange(3)).reshape(-1), constrained)
         if self.comm.allreduce(len(dofs)) == 0:
             return
-        self.relaxations += 1
         rows = PETSc.IS().createGeneral((self._first + dofs).astype(PETSc.IntType), comm=self.comm)
         self.residual(y, self._r)
         local = self._r.getSubVector(rows)

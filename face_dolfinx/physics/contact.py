@@ -535,10 +535,6 @@ class ContactPotential:
             np.add.at(gradient, active, (scale * weight * first)[:, None] * normal)
         return gradient
 
-    def contact_blocks(self, displacement: np.ndarray) -> np.ndarray:
-        """Local blocks of this rank's surface nodes that the barrier pushes on."""
-        return self.surface.pushed_blocks(self.nodal_forces(displacement))
-
     def add_gradient(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
         """b += dE_c/du on this rank's dofs."""
         gradient = self.nodal_forces(x.array_r)[self.surface.owned_nodes]

@@ -234,10 +234,6 @@ class LipContact:
         vertices = self.positions(displacement)
         return self.potential.gradient(self._collisions(vertices), self.mesh, vertices).reshape(-1, 3)
 
-    def contact_blocks(self, displacement: np.ndarray) -> np.ndarray:
-        """Local blocks of this rank's lip nodes that the barrier pushes on."""
-        return self.surface.pushed_blocks(self.nodal_forces(displacement))
-
     def nodal_pressure(self, displacement: np.ndarray) -> np.ndarray:
         """|contact force| / lumped rest area per lip node (kPa)."""
         return np.linalg.norm(self.nodal_forces(displacement), axis=1) / self.surface.areas
