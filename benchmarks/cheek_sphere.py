@@ -118,6 +118,16 @@ class FailureCount(logging.Handler):
         return report, time.perf_counter() - started
 
 
+def keep_pose(summary: dict, row: dict, out: pathlib.Path, comm) -> None:
+    """A pose's row joins ``summary``, which rank 0 writes to ``out`` at once (a long run keeps
+    what it measured) after printing the row."""
+    summary["poses"].append(row)
+    if comm.rank == 0:
+        print(json.dumps(row), flush=True)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(summary, indent=1) + "\n")
+
+
 def cheek_frame(model, site_name: str, u=None) -> tuple[np.ndarray, np.ndarray]:
     """The marker site on the skin displaced by ``u`` (at rest without) and the skin's outward unit
     normal there (area-weighted over the triangles within 12 mm). Collective."""
@@ -220,11 +230,7 @@ def main():
                    force_along_normal_mN=round(float(on_sphere @ normal), 4),
                    deepest_triangle_point_inside_mm=dip,
                    deepest_triangle_point_inside_any_iterate_mm=max(iterate_dips, default=dip))
-        summary["poses"].append(row)
-        if comm.rank == 0:
-            print(json.dumps(row), flush=True)
-            out.parent.mkdir(parents=True, exist_ok=True)
-            out.write_text(json.dumps(summary, indent=1) + "\n")
+        keep_pose(summary, row, out, comm)
     problem.solver.snes.cancelMonitor()
 
     # Pressure per skin node at the deepest pose: the barrier's nodal force over the node's area,

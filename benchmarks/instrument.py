@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from cheek_sphere import FailureCount, cheek_frame  # noqa: E402
+from cheek_sphere import FailureCount, cheek_frame, keep_pose  # noqa: E402
 from provenance import record  # noqa: E402
 from face_dolfinx.alignment.surface import closest_points  # noqa: E402
 from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
@@ -178,11 +178,7 @@ def main():
                    contact_vertices_edges=list(contact.contact_features(u)) if features else None,
                    force_on_instrument_mN=on_instrument.round(4).tolist(),
                    force_along_normal_mN=round(float(on_instrument @ normal), 4))
-        summary["poses"].append(row)
-        if comm.rank == 0:
-            print(json.dumps(row), flush=True)
-            out.parent.mkdir(parents=True, exist_ok=True)
-            out.write_text(json.dumps(summary, indent=1) + "\n")
+        keep_pose(summary, row, out, comm)
     problem.solver.snes.cancelMonitor()
     summary.update(total_seconds=round(time.perf_counter() - began, 2))
     if comm.rank == 0:
