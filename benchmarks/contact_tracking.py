@@ -107,10 +107,10 @@ class RelaxationCount:
             return
         relax = relaxation.relax
 
-        def timed(*args):
+        def timed(*args, **options):
             began = time.perf_counter()
             try:
-                relax(*args)
+                relax(*args, **options)
             finally:
                 self.seconds += time.perf_counter() - began
         relaxation.relax = timed

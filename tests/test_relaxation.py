@@ -63,12 +63,13 @@ def test_no_point_the_relaxation_tries_penetrates(model):
     relaxation, lips = problem.solver.relaxation, problem.lips
     iterates = LipIterates(lips, problem.V)
     tried = []
-    residual = relaxation.residual
 
-    def recorded(x, b):
-        residual(x, b)  # sets the unknown (with ghosts) to x
-        tried.append((lips.min_distance(problem.u.x.array), lips.penetration(problem.u.x.array)))
-    relaxation.residual = recorded
+    def recorded(evaluate):
+        def evaluated(x, b, *forms):
+            evaluate(x, b, *forms)  # sets the unknown (with ghosts) to x
+            tried.append((lips.min_distance(problem.u.x.array), lips.penetration(problem.u.x.array)))
+        return evaluated
+    relaxation.assemble, relaxation.full_residual = recorded(relaxation.assemble), recorded(relaxation.full_residual)
     problem.solver.snes.setMonitor(iterates)
     assert problem.solve(activations=sphincter(model), jaw=jaw_pose(model.jaw, CLOSED)).converged
     problem.solver.snes.cancelMonitor()
@@ -92,7 +93,7 @@ def test_relaxing_cuts_the_contact_nodes_residual_and_holds_every_other_dof(rela
 
     def residual_norms(state):
         """The residual's norm on the nodes in contact and on every other dof."""
-        solver.relaxation.residual(state, residual)
+        solver.relaxation.full_residual(state, residual)
         squares = [np.sum(residual.array_r[where] ** 2) for where in (contact_dofs, ~contact_dofs)]
         return [MPI.COMM_WORLD.allreduce(square) ** 0.5 for square in squares]
 
@@ -104,6 +105,25 @@ def test_relaxing_cuts_the_contact_nodes_residual_and_holds_every_other_dof(rela
     assert contact_after <= RELAXATION_REDUCTION * rest_before < contact_before
     assert np.array_equal(relaxed_state.array_r[~contact_dofs], moved.array_r[~contact_dofs])
     assert lips.min_distance(relaxed.u.x.array) > 0.0
+    x.copy(relaxed.u.vector)
+    relaxed.u.vector.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+
+
+def test_patch_residual_is_the_residual_on_the_contact_surface(relaxed):
+    """The local Newton's residual, assembled over the cells around the contact surfaces only,
+    is the whole face's on every node of those surfaces."""
+    relaxation, lips = relaxed.solver.relaxation, relaxed.lips
+    x = relaxed.u.vector.copy()
+    moved = x.copy()
+    moved.array.reshape(-1, 3)[lips.surface.owned_blocks] -= 0.01 * lips.up
+    full, patch = moved.duplicate(), moved.duplicate()
+    relaxation.full_residual(moved, full)
+    relaxation.patch_residual(moved, patch)
+    rows = (3 * lips.surface.owned_blocks[:, None] + np.arange(3)).reshape(-1)
+    scale = MPI.COMM_WORLD.allreduce(np.abs(full.array_r[rows]).max(initial=0.0), op=MPI.MAX)
+    assert scale > 1.0  # mN: off equilibrium
+    difference = np.abs(patch.array_r[rows] - full.array_r[rows]).max(initial=0.0)
+    assert MPI.COMM_WORLD.allreduce(difference, op=MPI.MAX) <= 1e-9 * scale
     x.copy(relaxed.u.vector)
     relaxed.u.vector.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 

@@ -84,6 +84,17 @@ def test_a_step_shortened_by_a_contact_bound_is_judged_by_its_length():
     assert newton(policy, [(1e4, 1.0, False), (8.5e3, 1.0, False)]) == [True, False]
 
 
+def test_reuse_across_solves_keeps_a_fresh_factor_for_one_more_iteration():
+    """A fresh tangent whose correction cut the residual slowly (a contact barrier settling) is
+    kept for the next iteration; a slow cut from the older factor then refreshes it."""
+    policy = FactorReusePolicy(across_solves=True, refresh_contraction=0.25)
+    steps = [(1e4, 1.0, False), (8e3, 1.0, False), (7e3, 1.0, False), (6e3, 1.0, False), (5e3, 1.0, True),
+             (4e3, 1.0, False)]
+    # 0.8 after a fresh factor: kept; 0.875 after the kept one: refreshed; 0.86 after the fresh one:
+    # kept; 0.83 after the kept one: refreshed; that fresh factor's step, cut by the guard: refreshed.
+    assert newton(policy, steps) == [False, True, False, True, False, False]
+
+
 def test_krylov_on_the_old_factor_refreshes_when_a_linear_solve_slows():
     policy = FactorReusePolicy(across_solves=True, krylov_refresh_iterations=8)
     steps = [(1e4, 1.0, False), (9e3, 1.0, False), (8e3, 1.0, False), (7e3, 1.0, False)]

@@ -16,13 +16,17 @@ matrix, factorised in milliseconds. Newton's correction becomes the way from the
 relaxed point; its line search, the inversion guard and the collision-free bounds then act on it
 as on any correction.
 
-The local Newton takes a step bounded by the same collision-free step and inversion guard
-(``bound``) and keeps it if the contact nodes' residual fell, halving it otherwise; it stops once
-that residual is below ``reduction`` times the rest's (the global Newton takes it from there) or
-after ``max_iterations``. (Stopping it also once a local correction moved no dof further than
+The local Newton takes a step bounded by the same collision-free step and inversion guard (over
+the patch cells, the only ones it moves) and keeps it if the contact nodes' residual fell, halving
+it otherwise; it stops once that residual is below ``reduction`` times the rest's (the global
+Newton takes it from there) or below Newton's own absolute tolerance (nothing left to relax in a
+converged solve), or after ``max_iterations``. (Stopping it also once a local correction moved no dof further than
 Newton's step tolerance left more factorisations in the 404K warm frames: docs/performance.md.) Each local step has a fresh local tangent: the barrier's stiffness
 changes by orders of magnitude as a gap closes, and a local tangent kept over the steps took 8
-steps to cut the residual of a lip moved 0.01 mm off its pressed equilibrium 2.6-fold.
+steps to cut the residual of a lip moved 0.01 mm off its pressed equilibrium 2.6-fold. The
+contact nodes' rows of the residual come from the patch too (the residual form restricted like
+the tangent, exact on those rows: every cell of a contact node is in the patch), at a fraction of
+the whole face's assembly.
 
 Under MPI the local problem is distributed as the unknown is (a parallel submatrix, MUMPS on the
 same ranks); every decision is taken on global norms, so all ranks take the same steps.
@@ -49,26 +53,31 @@ RELAXATION_HALVINGS = 4
 class ContactRelaxation:
     """The local Newton of the contact nodes (module docstring) for a ``QuasistaticSolver``.
 
-    ``jacobian``: the solver's tangent form (UFL), restricted here to the cells around the contact
-    surfaces; ``terms``: the solver's energy terms (each with ``surface``, a
-    ``physics.contact.ContactSurface``, and ``nodal_forces(displacement)``, its force on each of
-    the surface's nodes); ``template``: a vector like the unknown's; ``residual(x, b)``: b = the
-    total residual at x (Dirichlet rows zero); ``bound(x, step)``: the largest t in (0, 1] such
-    that x - s t step stays admissible for s in [0, 1] (collision-free, no inverted element);
-    ``compile_form(form)`` and ``create_matrix(form)``: the solver's (a matrix whose sparsity also
-    holds the terms' couplings).
+    ``residual`` and ``jacobian``: the solver's residual and tangent forms (UFL), restricted here
+    to the cells around the contact surfaces; ``terms``: the solver's energy terms (each with
+    ``surface``, a ``physics.contact.ContactSurface``, ``nodal_forces(displacement)``, its force
+    on each of the surface's nodes, and ``step_fraction``); ``template``: a vector like the
+    unknown's; ``assemble(x, b, residual_form, jacobian_form)``: b = the residual of these forms
+    and the terms at x (Dirichlet rows zero), ``full_residual(x, b)``: the solver's whole one;
+    ``guard``: the solver's ``InversionGuard`` (or None); ``compile_form(form)`` and
+    ``create_matrix(form)``: the solver's (a matrix whose sparsity also holds the terms'
+    couplings).
     """
 
-    def __init__(self, jacobian: ufl.Form, space: fem.FunctionSpace, terms: tuple, template: PETSc.Vec,
-                 residual: Callable[[PETSc.Vec, PETSc.Vec], None], bound: Callable[[PETSc.Vec, PETSc.Vec], float],
-                 compile_form: Callable, create_matrix: Callable,
+    def __init__(self, residual: ufl.Form, jacobian: ufl.Form, space: fem.FunctionSpace, terms: tuple,
+                 template: PETSc.Vec, assemble: Callable, full_residual: Callable[[PETSc.Vec, PETSc.Vec], None],
+                 guard, compile_form: Callable, create_matrix: Callable,
                  max_iterations: int = RELAXATION_ITERATIONS, reduction: float = RELAXATION_REDUCTION):
         self.space, self.terms = space, tuple(terms)
-        self.residual, self.bound = residual, bound
+        self.assemble, self.full_residual = assemble, full_residual
         self.max_iterations, self.reduction = max_iterations, reduction
         self.comm = space.mesh.comm
         self.local_iterations = 0  # local Newton steps taken in all
-        self._form = compile_form(self._patch_form(jacobian))
+        patch = self._patch_cells()
+        tags = dmesh.meshtags(space.mesh, 3, patch, np.ones(len(patch), dtype=np.int32))
+        self._form = compile_form(_restricted(jacobian, tags))
+        self._residual_form = compile_form(_restricted(residual, tags))
+        self.guard = guard.restricted(patch) if guard is not None else None
         self._matrix = create_matrix(self._form)
         self._ksp = PETSc.KSP().create(self.comm)
         self._ksp.setType("preonly")
@@ -81,8 +90,8 @@ class ContactRelaxation:
         self._trial = self._r.duplicate()
         self._first = space.dofmap.index_map.local_range[0] * space.dofmap.index_map_bs
 
-    def _patch_form(self, jacobian: ufl.Form) -> ufl.Form:
-        """``jacobian`` over this rank's cells that have a node on a contact surface (of any rank)."""
+    def _patch_cells(self) -> np.ndarray:
+        """This rank's cells that have a node on a contact surface (of any rank)."""
         flags = fem.Function(self.space)
         flags.x.array[:] = 0.0
         for term in self.terms:
@@ -91,9 +100,23 @@ class ContactRelaxation:
         flagged = flags.x.array.reshape(-1, 3)[:, 0] > 0.5
         cells = self.space.mesh.topology.index_map(3).size_local
         blocks = self.space.dofmap.list.array.reshape(-1, self.space.dofmap.dof_layout.num_dofs)[:cells]
-        patch = np.flatnonzero(flagged[blocks].any(axis=1)).astype(np.int32)
-        tags = dmesh.meshtags(self.space.mesh, 3, patch, np.ones(len(patch), dtype=np.int32))
-        return ufl.Form([integral.reconstruct(subdomain_id=1, subdomain_data=tags) for integral in jacobian.integrals()])
+        return np.flatnonzero(flagged[blocks].any(axis=1)).astype(np.int32)
+
+    def patch_residual(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        """b = the residual at x on the rows of the contact surfaces' nodes (the others hold the
+        patch's part of theirs)."""
+        self.assemble(x, b, self._residual_form, self._form)
+
+    def _bound(self, y: PETSc.Vec, step: PETSc.Vec) -> float:
+        """The largest t in (0, 1] such that y - s t step, s in [0, 1], inverts no patch cell and
+        stays collision-free."""
+        fraction = 1.0
+        if self.guard is not None:
+            for vector in (y, step):
+                vector.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+            with y.localForm() as y_local, step.localForm() as step_local:
+                fraction = self.guard.step_fraction(y_local.array_r, step_local.array_r)
+        return min([fraction] + [term.step_fraction(y, step, 1.0) for term in self.terms])
 
     def _local_tangent(self, y: PETSc.Vec, rows: PETSc.IS, constrained: np.ndarray) -> PETSc.Mat:
         """The tangent's (rows, rows) block at ``y``, the terms' Hessians projected as Newton's."""
@@ -109,19 +132,20 @@ class ContactRelaxation:
         K.setOption(PETSc.Mat.Option.SPD, True)
         return K
 
-    def relax(self, y: PETSc.Vec, constrained: np.ndarray) -> None:
+    def relax(self, y: PETSc.Vec, constrained: np.ndarray, tolerance: float = 0.0) -> None:
         """Move the contact nodes of ``y`` (owned values; ``constrained``: the owned local Dirichlet
-        dofs, which stay) towards their equilibrium with the rest of ``y`` held. Collective."""
+        dofs, which stay) towards their equilibrium with the rest of ``y`` held, until their
+        residual is below a ``reduction`` of the rest's or ``tolerance``. Collective."""
         blocks = np.unique(np.concatenate([term.surface.pushed_blocks(term.nodal_forces(y.array_r))
                                            for term in self.terms]))
         dofs = np.setdiff1d((3 * blocks[:, None] + np.arange(3)).reshape(-1), constrained)
         if self.comm.allreduce(len(dofs)) == 0:
             return
         rows = PETSc.IS().createGeneral((self._first + dofs).astype(PETSc.IntType), comm=self.comm)
-        self.residual(y, self._r)
+        self.full_residual(y, self._r)
         local = self._r.getSubVector(rows)
         norm = local.norm()
-        target = self.reduction * np.sqrt(max(self._r.norm() ** 2 - norm ** 2, 0.0))
+        target = max(self.reduction * np.sqrt(max(self._r.norm() ** 2 - norm ** 2, 0.0)), tolerance)
         correction = local.duplicate()
         self._r.restoreSubVector(rows, local)
         for _ in range(self.max_iterations):
@@ -141,11 +165,11 @@ class ContactRelaxation:
             embedded = self._step.getSubVector(rows)
             correction.copy(embedded)
             self._step.restoreSubVector(rows, embedded)
-            fraction = self.bound(y, self._step)
+            fraction = self._bound(y, self._step)
             for _ in range(RELAXATION_HALVINGS + 1):
                 y.copy(self._trial)
                 self._trial.axpy(-fraction, self._step)
-                self.residual(self._trial, self._trial_r)
+                self.patch_residual(self._trial, self._trial_r)
                 trial_local = self._trial_r.getSubVector(rows)
                 trial_norm = trial_local.norm()
                 self._trial_r.restoreSubVector(rows, trial_local)
@@ -160,3 +184,10 @@ class ContactRelaxation:
             self.local_iterations += 1
         correction.destroy()
         rows.destroy()
+
+
+def _restricted(form: ufl.Form, tags) -> ufl.Form:
+    """``form`` with its cell integrals over the cells tagged 1 by ``tags`` only; its facet
+    integrals (the intraoral pressure on the lining) stay whole."""
+    return ufl.Form([integral.reconstruct(subdomain_id=1, subdomain_data=tags)
+                     if integral.integral_type() == "cell" else integral for integral in form.integrals()])

@@ -182,18 +182,27 @@ class InversionGuard:
     solve used to be thrown away for continuation. Before the line search, the step is halved until
     every cell keeps at least ``min_volume_ratio`` of its rest volume (measured on the cell's
     vertices, exact for P1, the straight-sided part of a P2 cell). Cheap: a few numpy determinants
-    per cell and Newton iteration.
+    per cell and Newton iteration. ``cells`` (local indices): guard these cells only, for a step
+    that moves no vertex of the others (``restricted``).
     """
 
-    def __init__(self, space: fem.FunctionSpace, min_volume_ratio: float = 0.1, max_halvings: int = 12):
+    def __init__(self, space: fem.FunctionSpace, min_volume_ratio: float = 0.1, max_halvings: int = 12,
+                 cells: np.ndarray | None = None):
         num_cells = space.mesh.topology.index_map(3).size_local + space.mesh.topology.index_map(3).num_ghosts
         # Basix numbers the vertex dofs of a tetrahedron first, for P1 and P2 alike.
         self.vertex_blocks = space.dofmap.list.array.reshape(num_cells, -1)[:, :4]
+        if cells is not None:
+            self.vertex_blocks = self.vertex_blocks[cells]
         self.rest_points = space.tabulate_dof_coordinates()[:, :3][self.vertex_blocks]
         self.rest_volume = _signed_volumes(self.rest_points)
+        self.space = space
         self.min_volume_ratio = min_volume_ratio
         self.max_halvings = max_halvings
         self.comm = space.mesh.comm
+
+    def restricted(self, cells: np.ndarray) -> "InversionGuard":
+        """The same guard over ``cells`` (local indices) only."""
+        return InversionGuard(self.space, self.min_volume_ratio, self.max_halvings, cells)
 
     def min_ratio(self, displacement: np.ndarray) -> float:
         """Smallest current/rest volume ratio over all cells of all ranks."""
@@ -303,7 +312,11 @@ class FactorReusePolicy:
     the last factor, from whichever solve, is kept for as long as every iteration cuts the residual
     by ``refresh_contraction`` or more (a step that an energy term's collision-free bound shortened
     to a fraction t of the correction: by 1 - t (1 - ``refresh_contraction``), what a Newton step
-    of that length achieves), or, with Krylov on the old factor, a linear solve takes no
+    of that length achieves), and a fresh one for the next iteration at least: a fresh tangent
+    whose correction cut the residual slowly tells of the problem's nonlinearity (a contact barrier
+    settling), not of a stale factor, and another factorisation at once bought nothing (20K
+    tracked frames with lip and teeth contact, docs/performance.md); or, with Krylov on the old
+    factor, a linear solve takes no
     more than ``krylov_refresh_iterations`` and the residual falls by ``KRYLOV_STALL_CONTRACTION`` or
     more per iteration over the last two. Either way a step that the inversion guard had to cut
     refreshes the factor (it says the factor is stale, not that Newton stalls).
@@ -361,7 +374,7 @@ class FactorReusePolicy:
             expected = 1.0 - self.step_bound * (1.0 - self.refresh_contraction)
             contracting = iteration > 0 and self.contraction <= expected
         if self.across_solves:
-            keep = iteration == 0 or contracting
+            keep = iteration == 0 or contracting or (linear_iterations is None and self.fresh_factor)
         else:
             # Modified-Newton residuals alternate between fast and slow cuts (0.017, 0.26, ... on
             # the 404K pucker), so once the factor is kept it is judged over two iterations: one
@@ -479,6 +492,7 @@ class QuasistaticSolver:
         self.residual_evaluations = 0  # residual assemblies so far (matrix-free products included)
         self.linear_iterations = 0     # Krylov iterations (each one solve with the factor) so far
         self._factor_controls_current = False  # the factor holds a tangent of the controls now set
+        self.factor_is_exact = True  # ... the exact one (no term's Newton correction in it)
         self.bcs = bcs
         self._factor_conditions = ()  # the Dirichlet conditions of the factor's tangent
         self._factor_has_exact_terms = False  # a term's exact Hessian (exact_near_solution) is in it
@@ -533,10 +547,9 @@ class QuasistaticSolver:
         self.relaxation = None
         if contact_relaxation and self.energy_terms:
             self.relaxation = ContactRelaxation(
-                jacobian, unknown.function_space, self.energy_terms, unknown.vector,
-                residual=lambda x, b: self._assemble_residual(self.snes, x, b),
-                bound=lambda x, step: min(self._step_bounds(x, step, 1.0)),
-                compile_form=compile_form, create_matrix=self._create_tangent)
+                residual, jacobian, unknown.function_space, self.energy_terms, unknown.vector,
+                assemble=self._residual_of, full_residual=lambda x, b: self._assemble_residual(self.snes, x, b),
+                guard=inversion_guard, compile_form=compile_form, create_matrix=self._create_tangent)
             self._relaxed = unknown.vector.duplicate()
         self.snes.setLineSearchPreCheck(self._precheck)
         self.snes.setFromOptions()
@@ -556,19 +569,27 @@ class QuasistaticSolver:
 
     def _assemble_residual(self, snes, x, b):
         self.residual_evaluations += 1
+        self._residual_of(x, b, self.residual_form, self.jacobian_form, packed=True)
+
+    def _residual_of(self, x: PETSc.Vec, b: PETSc.Vec, residual_form: fem.FormMetaClass,
+                     jacobian_form: fem.FormMetaClass, packed: bool = False) -> None:
+        """b = the residual at x of ``residual_form`` (``jacobian_form``, its tangent, for the
+        lifting) and the energy terms, Dirichlet rows zero; ``packed``: the forms are the solver's
+        own, whose kept coefficient data serve."""
         self._set_unknown(x)
+        packs = packed and self._packs is not None
         # Matrix-free products (-snes_mf_operator) evaluate the residual into vectors without
         # ghosts: assemble into our own and copy the owned values.
         with b.localForm() as b_local:
             target = b if b_local.handle else self._residual_work
         with target.localForm() as target_local:
             target_local.set(0.0)
-        fem_petsc.assemble_vector(target, self.residual_form, coeffs=self._coefficients(0))
+        fem_petsc.assemble_vector(target, residual_form, coeffs=self._coefficients(0) if packs else None)
         # Lifting costs twice the residual (it runs the tangent kernel on bone-adjacent cells) and
         # vanishes once the iterate holds the Dirichlet values: after the first full step.
         if self.bc_error(x) > 0.0:
-            fem_petsc.apply_lifting(target, [self.jacobian_form], bcs=[self.bcs], x0=[self.unknown.vector],
-                                    scale=-1.0, coeffs=None if self._packs is None else [self._coefficients(1)])
+            fem_petsc.apply_lifting(target, [jacobian_form], bcs=[self.bcs], x0=[self.unknown.vector],
+                                    scale=-1.0, coeffs=[self._coefficients(1)] if packs else None)
         target.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         for term in self.energy_terms:
             term.add_gradient(x, target)
@@ -637,7 +658,7 @@ class QuasistaticSolver:
         y = self._relaxed
         x.copy(y)
         y.axpy(-min(self._step_bounds(x, step, 1.0)), step)
-        self.relaxation.relax(y, self._constrained_dofs())
+        self.relaxation.relax(y, self._constrained_dofs(), tolerance=self.snes.getTolerances()[1])
         x.copy(step)
         step.axpy(-1.0, y)
         self._set_unknown(x)
@@ -753,7 +774,7 @@ class QuasistaticSolver:
                 self._factor_has_exact_terms = True
         self.factorizations += 1
         self.reuse_policy.factorised(in_newton=True)
-        self._factor_controls_current = exact
+        self._factor_controls_current, self.factor_is_exact = True, exact
         x.copy(self._factor_state)
 
     def _newton_corrections(self, term) -> bool:
@@ -787,7 +808,7 @@ class QuasistaticSolver:
         ksp.getPC().setUp()
         self.factorizations += 1
         self.reuse_policy.factorised(in_newton=False)
-        self._factor_controls_current = True
+        self._factor_controls_current, self.factor_is_exact = True, True
         # The sensitivities' tangent is exact: Newton may keep it (reuse across solves).
         self._factor_has_exact_terms = any(hasattr(term, "add_newton_correction") for term in self.energy_terms)
 
@@ -803,11 +824,14 @@ class QuasistaticSolver:
         for pack in self._packs or ():
             pack.stale = True
 
-    def factor_distance(self) -> float:
+    def factor_distance(self, exact: bool = True) -> float:
         """Largest distance of a dof of the unknown from the state whose tangent the factor
         holds (0 right after ``factorize``), over all ranks; inf if no factor holds a tangent of
-        the controls now set. Collective."""
+        the controls now set, or (``exact``) if it holds Newton's tangent with an energy term's
+        correction (``factor_is_exact`` False: the contact Hessians projected). Collective."""
         if not (self.reuse_policy.has_factor and self._factor_controls_current and self._factor_has_these_conditions()):
+            return math.inf
+        if exact and not self.factor_is_exact:
             return math.inf
         self.unknown.vector.copy(self._distance_work)
         self._distance_work.axpy(-1.0, self._factor_state)

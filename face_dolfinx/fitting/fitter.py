@@ -80,7 +80,8 @@ class FaceFitter:
         whether it is exact (from the tangent at this state, not at one ``approximate_within`` mm
         away)."""
         start = time.perf_counter()
-        exact_jacobian = self.sensitivity.factor(reuse_within=approximate_within) == 0.0
+        exact_jacobian = (self.sensitivity.factor(reuse_within=approximate_within) == 0.0
+                          and self.problem.solver.factor_is_exact)
         columns = [self.sensitivity.activation_columns()]
         cranium_marker_columns = None
         if self.settings.fit_head:
@@ -105,7 +106,7 @@ class FaceFitter:
     def _close_factor(self) -> bool:
         """The newest factor may serve a fresh Jacobian (``approximate_jacobian_within``)."""
         within = self.settings.approximate_jacobian_within
-        return within > 0.0 and self.problem.solver.factor_distance() <= within
+        return within > 0.0 and self.problem.solver.factor_distance(exact=False) <= within
 
     def _reused_columns(self, state: ControlState):
         """The cached Jacobian turned by the change of the head's rotation since it was computed

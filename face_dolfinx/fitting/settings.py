@@ -35,7 +35,8 @@ class FitSettings:
     max_fresh_jacobians: int | None = None
     # mm: a fresh Jacobian may use the newest factor of the equilibrium solve if it was made at a
     # state this close to the equilibrium (an approximate tangent: the step's direction, not the
-    # fit's optimum, depends on it) instead of factorising again. 0: always the exact tangent.
+    # fit's optimum, depends on it; with contact, Newton's, whose barrier Hessians are projected)
+    # instead of factorising again. 0: always the exact tangent.
     approximate_jacobian_within: float = 0.0
     # Exact mode: trust region on the activation step (max |da|), adapted within a frame by how
     # well the linear prediction matched (doubles on agreement, halves otherwise). Noise in

@@ -396,10 +396,7 @@ class ContactPotential:
     def ignore(self, blocks: np.ndarray) -> None:
         """Leave the nodes of these local dof blocks out of the contact (collective): nodes held by a
         bone, which the barrier cannot push and whose prescribed path it must not cut short."""
-        blocks = np.asarray(blocks, dtype=np.int64)
-        flags = np.zeros((max(int(blocks.max(initial=-1)), int(self.surface.owned_blocks.max(initial=-1))) + 1, 3))
-        flags[blocks, 0] = 1.0
-        self.ignored = self.surface.gather(flags)[:, 0] > 0.5
+        self.ignored = self.surface.flagged(np.asarray(blocks))
 
     def set_poses(self, poses) -> None:
         poses = tuple(poses)

@@ -34,11 +34,12 @@ class EquilibriumSensitivity:
 
     def factor(self, reuse_within: float = 0.0) -> float:
         """Set up the tangent at the current shape for the solves that follow: the solver's newest
-        factor if it holds the tangent of these controls at a state no further than
-        ``reuse_within`` (mm, per dof) from this one, else a fresh assembly and factorisation.
-        Returns the distance of the factor's state from this one (0: the exact tangent)."""
+        factor if it holds a tangent of these controls (with ``reuse_within`` > 0 also Newton's,
+        whose contact Hessians are projected) at a state no further than ``reuse_within`` (mm, per
+        dof) from this one, else a fresh assembly and factorisation. Returns the distance of the
+        factor's state from this one: 0 with ``solver.factor_is_exact``, the exact tangent."""
         self._accepted_distance = reuse_within
-        distance = self.solver.factor_distance()
+        distance = self.solver.factor_distance(exact=reuse_within == 0.0)
         if math.isfinite(distance) and distance <= reuse_within:
             return distance
         self.solver.factorize()
@@ -48,7 +49,7 @@ class EquilibriumSensitivity:
         """K^-1 b_j for j < count, ``fill_rhs(j)`` putting b_j into ``self._rhs``: (count, local dofs
         incl. ghosts). With a direct factor, all right-hand sides go to MUMPS as one dense block
         (20K face, 32 muscles: 0.13 s against 1.0 s one by one); otherwise one Krylov solve each."""
-        distance = self.solver.factor_distance()
+        distance = self.solver.factor_distance(exact=self._accepted_distance == 0.0)
         if not (math.isfinite(distance) and distance <= self._accepted_distance):
             # An older factor (factorisation reuse, a later solve) gives the sensitivities of
             # another state.
