@@ -51,6 +51,8 @@ the time, as the distance from a point moving on a line to a convex set is). A p
 a face, or moving away from a triangle, is not held back by it; the per-node bound gap / step
 length alone would hold a node sliding at a gap of 0.01 mm to 1 % of a 1 mm step.
 """
+import itertools
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -116,23 +118,28 @@ class TriangleMesh:
         """(point, triangle) index pairs, each once, of every triangle that may come within
         ``radii`` of each point: the triangles of the samples within radii + h."""
         lists = self.sample_tree.query_ball_point(points, radii + self.covering_radius)
-        counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-        samples = np.fromiter((i for x in lists for i in x), dtype=np.int64, count=int(counts.sum()))
+        counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
+        samples = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
         key = np.unique(np.repeat(np.arange(len(points)), counts) * len(self.triangles) + self.sample_triangles[samples])
         return key // len(self.triangles), key % len(self.triangles)
 
-    def distance_bounds(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def distance_bounds(self, points: np.ndarray, within=np.inf) -> tuple[np.ndarray, np.ndarray]:
         """In the object's frame: a lower and an upper bound of each point's distance to the
-        surface, D - h and D (module docstring)."""
-        upper = self.sample_tree.query(points)[0]
-        return upper - self.covering_radius, upper
+        surface, D - h and D (module docstring). A point whose nearest sample lies beyond the
+        largest of ``within`` (a number or one per point) plus h, surely farther than that, gets
+        that largest ``within`` and inf: the tree's search stops there."""
+        reach = float(np.max(within, initial=0.0))
+        upper = self.sample_tree.query(points, distance_upper_bound=reach + self.covering_radius)[0]
+        lower = upper - self.covering_radius
+        lower[~np.isfinite(upper)] = reach
+        return lower, upper
 
     def local_distances(self, points: np.ndarray, within=np.inf, chunk: int = 4096):
         """In the object's frame: signed gap, unit normal and gap Hessian (k, 3, 3) of each point
         whose distance may be below ``within`` (a number or one per point); a lower bound of the
         distance, at least ``within``, and zeros for the others (module docstring)."""
         n = len(points)
-        lower, upper = self.distance_bounds(points)
+        lower, upper = self.distance_bounds(points, within)
         gap, normal, hessian = lower, np.zeros((n, 3)), np.zeros((n, 3, 3))
         near = np.flatnonzero(lower < within)
         for start in range(0, len(near), chunk):
@@ -196,7 +203,7 @@ class TriangleMesh:
         point's side of the surface), and its unit gradient and (k, 3, 3) Hessian. A point inside
         the surface gets only its nearest triangle, with a negative distance."""
         empty = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
-        lower, upper = self.distance_bounds(points)
+        lower, upper = self.distance_bounds(points, within)
         near = np.flatnonzero(lower < within)
         if not near.size:
             return empty
@@ -270,7 +277,7 @@ class TriangleMesh:
         moves = steps @ rotation
         length = np.linalg.norm(moves, axis=1)
         # No point comes within the clearance before it has moved its distance less the clearance.
-        lower = self.distance_bounds(local)[0]
+        lower = self.distance_bounds(local, length + clearance)[0]
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where(length > 0.0, (lower - clearance) / length, np.inf)
         reachable = np.flatnonzero(t < 1.0)
