@@ -516,6 +516,13 @@ class FaceProblem:
                 self.u.x.scatter_forward()
                 self._put_objects(start)
                 held = self._clear_objects(reached)
+                if fraction < 1.0:
+                    # The solve takes the bones the rest of the way by lifting; the objects and the
+                    # teeth go to the target's poses first, pushing the lining out of their way. Put
+                    # there unchecked, the teeth overran a lining node: a NaN residual, and the solve
+                    # restarted from the last equilibrium.
+                    self._put_objects(reached)
+                    held += self._clear_objects(target)
             self.set_controls(target)
             ok, iterations, why = self.solver.newton()
             if ok:
