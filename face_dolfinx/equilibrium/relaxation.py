@@ -20,10 +20,11 @@ The local Newton takes a step bounded by the same collision-free step and invers
 the patch cells, the only ones it moves) and keeps it if the contact nodes' residual fell, halving
 it otherwise; it stops once that residual is below ``reduction`` times the rest's (the global
 Newton takes it from there) or below Newton's own absolute tolerance (nothing left to relax in a
-converged solve), or after ``max_iterations``. (Stopping it also once a local correction moved no dof further than
-Newton's step tolerance left more factorisations in the 404K warm frames: docs/performance.md.) Each local step has a fresh local tangent: the barrier's stiffness
-changes by orders of magnitude as a gap closes, and a local tangent kept over the steps took 8
-steps to cut the residual of a lip moved 0.01 mm off its pressed equilibrium 2.6-fold. The
+converged solve), or after ``max_iterations``. (Stopping it also once a local correction moved no
+dof further than Newton's step tolerance left more factorisations in the 404K warm frames:
+docs/performance.md.) Each local step has a fresh local tangent: the barrier's stiffness changes
+by orders of magnitude as a gap closes, and a local tangent kept over the steps took 8 steps to
+cut the residual of a lip moved 0.01 mm off its pressed equilibrium 2.6-fold. The
 contact nodes' rows of the residual come from the patch too (the residual form restricted like
 the tangent, exact on those rows: every cell of a contact node is in the patch), at a fraction of
 the whole face's assembly.

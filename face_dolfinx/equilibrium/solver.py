@@ -30,7 +30,8 @@ last correction moved no dof by more than ``CONVERGING_CORRECTION`` and cut the 
 after which the factor of its last tangent finishes the solve. Optionally (``across_solves``, the
 problem's ``reuse_factorization``) Newton keeps the last MUMPS factor as its matrix (modified
 Newton) for as long as every iteration cuts the residual norm by ``refresh_contraction`` (default
-``REFRESH_CONTRACTION``) or more, across solves too: between nearby equilibria (frames of a take)
+``REFRESH_CONTRACTION``) or more, and a fresh factor for one more iteration whatever its cut, across
+solves too: between nearby equilibria (frames of a take)
 an iteration then costs a residual and a solve instead of an assembly and a factorisation.
 ``factor_distance()`` says how far the unknown has moved from the state whose tangent the factor
 holds, for callers that can use a nearby tangent (approximate Jacobians).
@@ -205,7 +206,7 @@ class InversionGuard:
         return InversionGuard(self.space, self.min_volume_ratio, self.max_halvings, cells)
 
     def min_ratio(self, displacement: np.ndarray) -> float:
-        """Smallest current/rest volume ratio over all cells of all ranks."""
+        """Smallest current/rest volume ratio over the guarded cells of all ranks."""
         points = self.rest_points + displacement.reshape(-1, 3)[self.vertex_blocks]
         local = float((_signed_volumes(points) / self.rest_volume).min(initial=np.inf))
         return self.comm.allreduce(local, op=MPI.MIN)
