@@ -1,7 +1,8 @@
 """Nonlinear elimination of the contact nodes (face_dolfinx.equilibrium.relaxation) on the small
 face's pressed lips and the slab under a sphere: the same equilibrium as Newton without it, no
 penetration at any point the relaxation tries, the contact nodes' residual cut with every other dof
-held, and the same result on 1 and 2 ranks.
+held, the residual over the cells around the contact surfaces equal to the whole face's on their
+nodes, and the same result on 1 and 2 ranks.
 """
 from mpi4py import MPI
 from petsc4py import PETSc
