@@ -11,6 +11,7 @@ pairs, and the contact pressure per lip node (kPa), plotted along the mouth (``-
 """
 import argparse
 import json
+import logging
 import pathlib
 import sys
 import time
@@ -27,8 +28,8 @@ from face_dolfinx.physics.problem import FaceProblem  # noqa: E402
 from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, LipIterates, lip_facets  # noqa: E402
 
 
-def run(model, angle: float, settings: LipContactSettings | None) -> tuple[dict, FaceProblem, LipContact]:
-    problem = FaceProblem(model, lip_contact=settings)
+def run(model, angle: float, settings: LipContactSettings | None, **solver) -> tuple[dict, FaceProblem, LipContact]:
+    problem = FaceProblem(model, lip_contact=settings, **solver)
     lips = problem.lips or LipContact(problem.V, *lip_facets(model, LipContactSettings()), LipContactSettings(),
                                       problem.bone_blocks)
     iterates = LipIterates(lips, problem.V)
@@ -39,7 +40,7 @@ def run(model, angle: float, settings: LipContactSettings | None) -> tuple[dict,
     seconds = time.perf_counter() - began
     u = problem.u.x.array
     row = dict(self_contact=settings is not None, dhat=settings.dhat if settings else None,
-               stiffness=settings.stiffness if settings else None, jaw_deg=angle, converged=report.converged,
+               stiffness=settings.stiffness if settings else None, **solver, jaw_deg=angle, converged=report.converged,
                newton_iterations=report.newton_iterations, load_steps=report.load_steps, seconds=round(seconds, 2),
                iterates=len(iterates.distances), smallest_distance_any_iterate=min(iterates.distances),
                deepest_penetration_any_iterate=max(iterates.depths), final_distance=lips.min_distance(u),
@@ -54,15 +55,25 @@ def main():
     parser.add_argument("--jaw", type=float, default=-2.0, help="jaw opening, degrees (negative: beyond closed)")
     parser.add_argument("--dhat", type=float, default=0.05)
     parser.add_argument("--stiffness", type=float, default=10.0)
+    parser.add_argument("--contact-relaxation", action="store_true",
+                        help="relax the nodes in contact after each Newton correction (as `fit --fast`)")
+    parser.add_argument("--newton-energy-tolerance", type=float,
+                        help="mN mm: also stop Newton once a correction would release less (as `fit --fast`)")
     parser.add_argument("--out", required=True)
     parser.add_argument("--plot")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log every Newton solve to standard error")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
+    if args.verbose and comm.rank == 0:
+        logging.basicConfig(format="%(asctime)s %(name)s: %(message)s")
+        logging.getLogger("face_dolfinx").setLevel(logging.DEBUG)
+    solver = dict(contact_relaxation=args.contact_relaxation, newton_energy_tolerance=args.newton_energy_tolerance)
     model = load_model(build_builtin_face(target_tets=args.tets, comm=comm), comm)
     rows = []
-    without, _, _ = run(model, args.jaw, None)
+    without, _, _ = run(model, args.jaw, None, **solver)
     rows.append(without)
-    with_contact, problem, lips = run(model, args.jaw, LipContactSettings(dhat=args.dhat, stiffness=args.stiffness))
+    with_contact, problem, lips = run(model, args.jaw, LipContactSettings(dhat=args.dhat, stiffness=args.stiffness),
+                                        **solver)
     pressure = lips.nodal_pressure(problem.u.x.array)
     x = lips.positions(problem.u.x.array)
     with_contact.update(peak_pressure=float(pressure.max()),
