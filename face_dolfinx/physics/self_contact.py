@@ -221,8 +221,16 @@ class LipContact:
             # change the distances).
             collisions = state.collisions
         else:
-            collisions = ipctk.NormalCollisions()
-            collisions.build(self.mesh, vertices, reach)
+            # Every pair closer than a search radius is in its set, so the first radius that finds
+            # one finds the nearest: growing it from dhat spares building the lips' all-pairs set
+            # (on the 404K face a sixth of a closing solve's time).
+            radius = min(self.dhat, reach)
+            while True:
+                collisions = ipctk.NormalCollisions()
+                collisions.build(self.mesh, vertices, radius)
+                if len(collisions) or radius >= reach:
+                    break
+                radius = min(4.0 * radius, reach)
         # ipctk's distances are squared.
         return float(np.sqrt(collisions.compute_minimum_distance(self.mesh, vertices))) if len(collisions) else reach
 
