@@ -1,8 +1,10 @@
 """Lips closed hard, with and without lip self-contact (docs/contact.md, "Lip self-contact").
 
 The built-in face with the jaw closed ``--jaw`` degrees beyond its rest pose and the orbicularis
-oris (upper and lower, left and right) at 1, solved once from rest without and with
-``FaceProblem(lip_contact=...)``. At every Newton iterate: the smallest distance between the lips
+oris (upper and lower, left and right) at 1, solved from rest without and with
+``FaceProblem(lip_contact=...)``: in one solve, or along a ramp of ``--load-steps`` equilibria
+(each from the last; a Newton solve that fails falls back on continuation, counted in
+``solves_with_continuation``). At every Newton iterate: the smallest distance between the lips
 and the deepest lip node inside the other lip. At the end: Newton iterations, seconds, barrier
 pairs, and the contact pressure per lip node (kPa), plotted along the mouth (``--plot``).
 
@@ -28,7 +30,8 @@ from face_dolfinx.physics.problem import FaceProblem  # noqa: E402
 from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, LipIterates, lip_facets  # noqa: E402
 
 
-def run(model, angle: float, settings: LipContactSettings | None, **solver) -> tuple[dict, FaceProblem, LipContact]:
+def run(model, angle: float, settings: LipContactSettings | None, load_steps: int = 1,
+        **solver) -> tuple[dict, FaceProblem, LipContact]:
     problem = FaceProblem(model, lip_contact=settings, **solver)
     lips = problem.lips or LipContact(problem.V, *lip_facets(model, LipContactSettings()), LipContactSettings(),
                                       problem.bone_blocks)
@@ -36,12 +39,17 @@ def run(model, angle: float, settings: LipContactSettings | None, **solver) -> t
     problem.solver.snes.setMonitor(iterates)
     sphincter = {m.name: 1.0 for m in model.muscles if m.name.startswith("orbicularis_oris")}
     began = time.perf_counter()
-    report = problem.solve(activations=sphincter, jaw=jaw_pose(model.jaw, np.radians(angle)))
+    reports = [problem.solve(activations={name: t * a for name, a in sphincter.items()},
+                             jaw=jaw_pose(model.jaw, np.radians(t * angle)))
+               for t in np.arange(1, load_steps + 1) / load_steps]
     seconds = time.perf_counter() - began
     u = problem.u.x.array
     row = dict(self_contact=settings is not None, dhat=settings.dhat if settings else None,
-               stiffness=settings.stiffness if settings else None, **solver, jaw_deg=angle, converged=report.converged,
-               newton_iterations=report.newton_iterations, load_steps=report.load_steps, seconds=round(seconds, 2),
+               stiffness=settings.stiffness if settings else None, **solver, jaw_deg=angle, converged=all(r.converged for r in reports),
+               newton_iterations=sum(r.newton_iterations for r in reports),
+               load_steps=sum(r.load_steps for r in reports), ramp_steps=load_steps,
+               solves_with_continuation=sum(r.load_steps > 1 for r in reports),
+               seconds=round(seconds, 2),
                iterates=len(iterates.distances), smallest_distance_any_iterate=min(iterates.distances),
                deepest_penetration_any_iterate=max(iterates.depths), final_distance=lips.min_distance(u),
                final_penetration=lips.penetration(u), pairs=lips.pairs(u) if settings else 0,
@@ -59,6 +67,9 @@ def main():
                         help="relax the nodes in contact after each Newton correction (as `fit --fast`)")
     parser.add_argument("--newton-energy-tolerance", type=float,
                         help="mN mm: also stop Newton once a correction would release less (as `fit --fast`)")
+    parser.add_argument("--load-steps", type=int, default=1,
+                        help="reach the closure in this many equilibria along a linear ramp of the jaw and "
+                             "the muscle, each solved from the last")
     parser.add_argument("--out", required=True)
     parser.add_argument("--plot")
     parser.add_argument("-v", "--verbose", action="store_true", help="log every Newton solve to standard error")
@@ -73,7 +84,7 @@ def main():
     without, _, _ = run(model, args.jaw, None, **solver)
     rows.append(without)
     with_contact, problem, lips = run(model, args.jaw, LipContactSettings(dhat=args.dhat, stiffness=args.stiffness),
-                                        **solver)
+                                        args.load_steps, **solver)
     pressure = lips.nodal_pressure(problem.u.x.array)
     x = lips.positions(problem.u.x.array)
     with_contact.update(peak_pressure=float(pressure.max()),
