@@ -37,11 +37,14 @@ MANIFEST = "manifest.json"
 
 
 def git_commit() -> tuple[str, bool | None]:
-    """The checked-out commit and whether tracked files differ from it ("unknown", None outside git)."""
+    """The checked-out commit and whether tracked files other than the manifests differ from it
+    ("unknown", None outside git): a run that writes two files records the second after its
+    manifest took the first."""
     def git(*args):
         return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
     try:
-        return git("rev-parse", "HEAD"), bool(git("status", "--porcelain", "--untracked-files=no"))
+        return git("rev-parse", "HEAD"), bool(git("status", "--porcelain", "--untracked-files=no", "--", ".",
+                                                  f":(exclude,glob)**/{MANIFEST}"))
     except (OSError, subprocess.CalledProcessError):
         return "unknown", None
 
