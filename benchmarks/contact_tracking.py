@@ -281,7 +281,7 @@ def main():
 
     comm = MPI.COMM_WORLD
     if args.verbose and comm.rank == 0:
-        logging.basicConfig(format="%(asctime)s %(name)s: %(message)s")
+        logging.basicConfig(format="%(asctime)s %(name)s: %(message)s", force=True)
         logging.getLogger("face_dolfinx").setLevel(logging.DEBUG)
     began = time.perf_counter()
     model = load_model(build_builtin_face(args.tets, comm=comm), comm)

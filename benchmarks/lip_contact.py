@@ -45,7 +45,8 @@ def run(model, angle: float, settings: LipContactSettings | None, load_steps: in
     seconds = time.perf_counter() - began
     u = problem.u.x.array
     row = dict(self_contact=settings is not None, dhat=settings.dhat if settings else None,
-               stiffness=settings.stiffness if settings else None, **solver, jaw_deg=angle, converged=all(r.converged for r in reports),
+               stiffness=settings.stiffness if settings else None, **solver, jaw_deg=angle,
+               converged=all(r.converged for r in reports),
                newton_iterations=sum(r.newton_iterations for r in reports),
                load_steps=sum(r.load_steps for r in reports), ramp_steps=load_steps,
                solves_with_continuation=sum(r.load_steps > 1 for r in reports),
@@ -76,7 +77,7 @@ def main():
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     if args.verbose and comm.rank == 0:
-        logging.basicConfig(format="%(asctime)s %(name)s: %(message)s")
+        logging.basicConfig(format="%(asctime)s %(name)s: %(message)s", force=True)
         logging.getLogger("face_dolfinx").setLevel(logging.DEBUG)
     solver = dict(contact_relaxation=args.contact_relaxation, newton_energy_tolerance=args.newton_energy_tolerance)
     model = load_model(build_builtin_face(target_tets=args.tets, comm=comm), comm)
