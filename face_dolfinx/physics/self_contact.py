@@ -181,6 +181,11 @@ class LipContact:
         near = np.linalg.norm(rest_corners.mean(axis=1) - centre, axis=1) < reach
         self._cell_blocks, self._cell_rest = blocks[near], rest_corners[near]
         self._cell_globals = index_map.local_to_global(blocks[near].reshape(-1)).reshape(-1, 4)
+        # Each lip's nodes off the other lip, with the other lip's triangles.
+        self._opposite = [(np.setdiff1d(nodes, others),
+                           self.surface.triangles[np.isin(self.surface.triangles, others).all(axis=1)])
+                          for nodes, others in ((self.upper_nodes, self.lower_nodes),
+                                                (self.lower_nodes, self.upper_nodes))]
         rest_distance = self.min_distance(np.zeros(3 * (space.dofmap.index_map.size_local + index_map.num_ghosts)))
         if not rest_distance > self.dhat:
             raise ValueError(f"{settings.where}: the lips are {rest_distance:.3g} mm apart at rest, not more than "
@@ -262,9 +267,7 @@ class LipContact:
             centroids = corners.mean(axis=1)
             reach = np.linalg.norm(corners - centroids[:, None, :], axis=2).max()
             tree = scipy.spatial.cKDTree(centroids)
-            for nodes, others in ((self.upper_nodes, self.lower_nodes), (self.lower_nodes, self.upper_nodes)):
-                triangles = self.surface.triangles[np.isin(self.surface.triangles, others).all(axis=1)]
-                free = np.setdiff1d(nodes, others)
+            for free, triangles in self._opposite:
                 for node, near in zip(free, tree.query_ball_point(x[free], reach)):
                     near = np.asarray(near, dtype=np.int64)
                     inside = (_contains(corners[near], x[node])
