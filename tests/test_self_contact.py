@@ -338,3 +338,38 @@ def test_the_jaw_carries_the_lining_but_not_the_lips(model):
         assert report.converged
         assert problem.lips.min_distance(problem.u.x.array) > 0.0
     assert max(iterations[-2:]) < 100
+
+
+def test_simulate_with_the_contact_solver_options(model, shared_dir, monkeypatch):
+    """``simulate --contact --contact-relaxation --newton-energy-tolerance 10``: the options reach
+    the problem's solver, whose relaxation works on the lining the teeth push out, and the smile lands
+    where the default solver puts it, within what the energy stop leaves; without contact, or with a
+    tolerance that is no positive energy, the options are refused before any solve."""
+    import json
+    import face_dolfinx.physics.problem as problem_module
+    from face_dolfinx.cli.main import main
+    solvers = []
+
+    class Recorded(problem_module.FaceProblem):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            solvers.append(self.solver)
+
+    monkeypatch.setattr(problem_module, "FaceProblem", Recorded)
+    rows = {}
+    for name, options in (("plain", []), ("relaxed", ["--contact-relaxation", "--newton-energy-tolerance", "10"])):
+        out = shared_dir / f"smile_{name}"
+        assert main(["simulate", "smile", "--model", str(model.path), "--contact", "--out", str(out),
+                     "--no-render", *options]) == 0
+        rows[name] = json.loads((out / "summary.json").read_text())["expressions"][0]
+    plain, relaxed = solvers
+    assert plain.relaxation is None and plain.energy_tolerance is None
+    assert relaxed.relaxation is not None and relaxed.energy_tolerance == 10.0
+    assert relaxed.relaxation.local_iterations > 0
+    assert abs(rows["relaxed"]["max_displacement_mm"] - rows["plain"]["max_displacement_mm"]) < 0.01
+    for options, message in ((["--contact-relaxation"], "give --contact or --object"),
+                             (["--contact", "--newton-energy-tolerance", "0"], "give a positive energy")):
+        with pytest.raises(SystemExit, match=message):
+            main(["simulate", "smile", "--model", str(model.path), "--out", str(shared_dir / "never"),
+                  "--no-render", *options])
+    assert not (shared_dir / "never").exists()

@@ -162,13 +162,15 @@ def _expression_controls(model, name: str):
 
 def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 1,
              overwrite: bool = False, render: bool = True, coarse_model=None, contact=None,
-             lip_contact=None) -> list[dict]:
+             lip_contact=None, contact_solver: dict | None = None) -> list[dict]:
     """Solve each expression from the previous equilibrium and write one result folder. With a
     ``coarse_model`` of the same face, each solve starts from the coarse model's equilibrium
     (``face_dolfinx.equilibrium.coarse``). ``contact``: (``ContactSettings``, poses of its object):
     the object starts at the first pose, the expressions are solved against it, then it moves along
     the rest of the poses, one frame each (object.xdmf shows it); no poses: no object (the
-    settings' teeth, say). ``lip_contact``: ``LipContactSettings``, the lips pressing on each other."""
+    settings' teeth, say). ``lip_contact``: ``LipContactSettings``, the lips pressing on each other.
+    ``contact_solver``: ``FaceProblem``'s contact solver options (``contact_relaxation``,
+    ``newton_energy_tolerance``; ``_contact_solver``)."""
     from face_dolfinx.equilibrium.coarse import CoarseStart
     from face_dolfinx.files import atomic_directory
     from face_dolfinx.results.xdmf import FaceWriter
@@ -180,7 +182,7 @@ def simulate(model, expressions: list[str], out: pathlib.Path, *, degree: int = 
         raise SystemExit("--object or --contact and --coarse do not go together: the coarse model has no contact")
     start = time.perf_counter()
     problem = FaceProblem(model, degree=degree, contact=contact[0] if contact is not None else None,
-                          lip_contact=lip_contact)
+                          lip_contact=lip_contact, **(contact_solver or {}))
     solver = problem
     if coarse_model is not None:
         solver = CoarseStart(FaceProblem(coarse_model), problem)
@@ -252,14 +254,15 @@ def expression_sequence(model, expressions: list[str], seconds_each: float):
 
 def simulate_dynamic(model, controls_at, times, out: pathlib.Path, settings, *, degree: int = 1,
                      overwrite: bool = False, intraoral_pressure: bool = False,
-                     source: dict | None = None, contact=None, lip_contact=None) -> list[dict]:
+                     source: dict | None = None, contact=None, lip_contact=None,
+                     contact_solver: dict | None = None) -> list[dict]:
     """Integrate the face in time (``FaceProblem.dynamics``) from the equilibrium of
     ``controls_at(times[0])`` through ``times`` (s), one XDMF frame per time, into the results
     folder ``out`` with summary.json. A time step that cannot converge ends the run with one
     message after the folder is written with the frames before it (summary.json says where it
     stopped). ``intraoral_pressure``: the controls carry a pressure. ``source``: what drove it, for
     summary.json. ``contact`` (``ContactSettings``: objects, whose poses ``controls_at`` gives, and
-    teeth) and ``lip_contact`` (``LipContactSettings``) as in ``simulate``; an object's surface is
+    teeth), ``lip_contact`` (``LipContactSettings``) and ``contact_solver`` as in ``simulate``; an object's surface is
     written as object.xdmf, and summary.json gives per frame the contact of each."""
     from face_dolfinx.equilibrium.dynamics import DynamicsError
     from face_dolfinx.files import atomic_directory
@@ -272,7 +275,7 @@ def simulate_dynamic(model, controls_at, times, out: pathlib.Path, settings, *, 
     first = controls_at(float(times[0]))
     try:  # the model may lack what the controls need (an 'oral' surface for a pressure, teeth)
         problem = FaceProblem(model, degree=degree, intraoral_pressure=intraoral_pressure, contact=contact,
-                              lip_contact=lip_contact)
+                              lip_contact=lip_contact, **(contact_solver or {}))
         if problem.contact is not None:  # an object whose first pose overlaps the skin: before any solve
             problem.contact.set_poses(first.objects)
             problem.contact.check_clear(problem.u.x.array)
@@ -404,7 +407,8 @@ def simulate_animation(model, args) -> None:
     try:  # the model may lack what the animation needs (an 'oral' surface for its pressure) or teeth
         problem = FaceProblem(model, degree=args.degree, intraoral_pressure=animation.has_pressure,
                               newton_tolerance=args.newton_tolerance, reuse_factorization=args.reuse_factorization,
-                              contact=contact[0] if contact is not None else None, lip_contact=_lip_contact(args))
+                              contact=contact[0] if contact is not None else None, lip_contact=_lip_contact(args),
+                              **_contact_solver(args))
     except ValueError as error:
         raise SystemExit(f"face-dolfinx: error: {animation.source}{' with --contact' if args.contact else ''}: "
                          f"{error}") from None
@@ -417,7 +421,10 @@ def simulate_animation(model, args) -> None:
                                                    reuse_factorization=args.reuse_factorization,
                                                    dynamic=vars(settings) if settings is not None else None,
                                                    contact=args.contact,
-                                                   contact_surfaces=["lips", "teeth"] if args.contact else []))
+                                                   contact_surfaces=["lips", "teeth"] if args.contact else [],
+                                                   # recorded when set, so that older folders resume
+                                                   **{key: value for key, value in _contact_solver(args).items()
+                                                      if value}))
     except FitFolderError as error:
         raise SystemExit(str(error)) from None
     if folder.finished:
@@ -688,6 +695,19 @@ def _object_from_args(args):
         raise SystemExit(str(error)) from None
     teeth = dict(teeth=True, stiffness=TEETH_STIFFNESS) if args.contact else {}
     return ContactSettings((obj,), (poses[0],), where=f"{args.path} (its first pose)", **teeth), poses
+
+
+def _contact_solver(args) -> dict:
+    """``simulate``'s contact solver options (``FaceProblem``'s keywords): ``--contact-relaxation``
+    and ``--newton-energy-tolerance``, which act on contact terms only (``--contact``, ``--object``)."""
+    options = dict(contact_relaxation=args.contact_relaxation, newton_energy_tolerance=args.newton_energy_tolerance)
+    if (args.contact_relaxation or args.newton_energy_tolerance is not None) and not (args.contact or args.object):
+        raise SystemExit("--contact-relaxation and --newton-energy-tolerance act on contact: give --contact or "
+                         "--object with them")
+    tolerance = args.newton_energy_tolerance
+    if tolerance is not None and not (math.isfinite(tolerance) and tolerance > 0):
+        raise SystemExit(f"--newton-energy-tolerance {tolerance}: give a positive energy (mN mm)")
+    return options
 
 
 def _lip_contact(args):
@@ -1046,6 +1066,16 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--contact", action="store_true",
                    help="keep the lips and cheeks outside the model's teeth (their oral lining) and the lips "
                         "outside each other (docs/contact.md)")
+    p.add_argument("--contact-relaxation", action="store_true",
+                   help="with --contact or --object: after each Newton correction the nodes in contact are brought "
+                        "to their own equilibrium by a local Newton, the rest of the face held (as fit --fast); "
+                        "with --newton-energy-tolerance 10 the lips closed hard on the 404K face without a failed "
+                        "Newton solve; on the 5K face it costs more than it saves (docs/contact.md, \"Lip "
+                        "self-contact\")")
+    p.add_argument("--newton-energy-tolerance", type=float, metavar="MJ",
+                   help="with --contact or --object: Newton also stops once a correction would release less "
+                        "energy than this (mN mm; fit --fast takes 10): pressed lips slide along each other in "
+                        "corrections of a millimetre that release micro-joules")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
     p = sub.add_parser("retarget", help="carry a fit's or an animation's motion onto another model",
@@ -1353,7 +1383,7 @@ def _main(argv=None) -> int:
     try:
         rows = simulate(model, args.expressions, out, degree=args.degree, overwrite=args.overwrite,
                         render=not args.no_render, coarse_model=_coarse_model(args), contact=contact,
-                        lip_contact=_lip_contact(args))
+                        lip_contact=_lip_contact(args), contact_solver=_contact_solver(args))
     except ValueError as error:
         if contact is None and not args.contact:
             raise
@@ -1387,7 +1417,7 @@ def _simulate_dynamic_expressions(model, args, out: pathlib.Path) -> int:
     times = np.arange(0.0, duration + 0.5 / args.frame_rate, 1.0 / args.frame_rate)
     rows = simulate_dynamic(model, controls_at, times, out, settings, degree=args.degree, overwrite=args.overwrite,
                             source=source, contact=contact[0] if contact is not None else None,
-                            lip_contact=_lip_contact(args))
+                            lip_contact=_lip_contact(args), contact_solver=_contact_solver(args))
     if MPI.COMM_WORLD.rank == 0:
         print(f"results: {out.resolve()} ({len(rows)} frames; face.xdmf for ParaView)")
     return 0
