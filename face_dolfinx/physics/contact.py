@@ -487,34 +487,52 @@ class ContactPotential:
         triangle mesh one per (node, triangle), (node, edge) and (node, vertex) pair within dhat
         (``TriangleMesh.barrier_terms``, docs/contact.md "A smooth barrier"). The gradient, the
         Hessian, Newton's correction and the pose rates of one state share them: the same
-        positions, poses and ignored nodes as the last call's reuse its result."""
+        positions, poses and ignored nodes as the last call's reuse its result, and a state that
+        moved only some nodes (the relaxation's local steps) recomputes only theirs (a node's terms
+        depend on its position alone; each node's come whole from one computation, in the same
+        order, so its force and Hessian block are those of a fresh call to the bit)."""
         x = self.positions(displacement)
         last = self._last_terms
-        if last is not None and last[1] is self.poses and last[2] is self.ignored and np.array_equal(last[0], x):
-            return last[3]
+        if last is None or last[1] is not self.poses or last[2] is not self.ignored:
+            terms = self._node_terms(x, np.arange(len(x)))
+        else:
+            moved = np.flatnonzero((last[0] != x).any(axis=1))
+            if not moved.size:
+                return last[3]
+            terms = self._node_terms(x, moved)
+            if moved.size < len(x):
+                terms = [tuple(np.concatenate([a[~np.isin(old[0], moved)], b]) for a, b in zip(old, new))
+                         for old, new in zip(last[3], terms)]
+        self._last_terms = (x, self.poses, self.ignored, terms)
+        return terms
+
+    def _node_terms(self, x: np.ndarray, nodes: np.ndarray) -> list:
+        """``_terms`` of the contact nodes ``nodes`` (indices into x, the positions of all)."""
         terms = []
+        points = x[nodes]
         for obj, pose, by_nodes in zip(self.objects, self.poses, self.node_barrier):
             if not by_nodes:  # a subclass's barrier takes the object
                 terms.append((np.zeros(0, dtype=int), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)),
                               np.zeros((0, 3, 3))))
                 continue
             if isinstance(obj, TriangleMesh):
-                which, sign, gap, normal, gap_hessian = obj.barrier_terms(x, pose, within=self.dhat)
-                kept = ~self.ignored[which]
-                active = which[kept]
+                which, sign, gap, normal, gap_hessian = obj.barrier_terms(points, pose, within=self.dhat)
+                active = nodes[which]
+                kept = ~self.ignored[active]
+                active = active[kept]
                 terms.append((active, sign[kept] * self.surface.areas[active], x[active], gap[kept], normal[kept],
                               gap_hessian[kept]))
                 continue
             # Nodes surely beyond dhat get a lower bound of their gap (>= dhat): inactive either way.
-            gap, normal, curvature = obj.gaps(x, pose, within=self.dhat)
-            active = np.flatnonzero((gap < self.dhat) & ~self.ignored)
-            normal, curvature = normal[active], curvature[active]
+            gap, normal, curvature = obj.gaps(points, pose, within=self.dhat)
+            near = np.flatnonzero((gap < self.dhat) & ~self.ignored[nodes])
+            active = nodes[near]
+            normal, curvature = normal[near], curvature[near]
             # d2g/dx2 = c (I - n n^T) for a sphere (a scalar curvature c per node), given whole by
             # a triangle mesh.
             gap_hessian = (curvature if curvature.ndim == 3 else
                            curvature[:, None, None] * (np.eye(3) - normal[:, :, None] * normal[:, None, :]))
-            terms.append((active, self.surface.areas[active], x[active], gap[active], normal, gap_hessian))
-        self._last_terms = (x, self.poses, self.ignored, terms)
+            terms.append((active, self.surface.areas[active], x[active], gap[near], normal, gap_hessian))
         return terms
 
     def energy(self, x: PETSc.Vec) -> float:
