@@ -41,17 +41,17 @@ from mpi4py import MPI
 import numpy as np
 
 TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5 times one without
-# What a contact variant may switch off to measure it (docs/contact.md, "Newton with pressed lips"),
+# What a contact variant may change to measure it (docs/contact.md, "Newton with pressed lips"),
 # appended to its name with "+": the lips' exact Hessian in Newton's tangent throughout, the
 # factor refreshed after every iteration that cuts the residual less than ``refresh_contraction``
 # however short the collision-free bound made its step, and Newton corrections that climb the
 # energy taken (``QuasistaticSolver.refuse_ascent`` off), Newton stopped by the step tolerance
 # alone (``--newton-energy-tolerance`` off; the result files recorded before the preset had it), and
-# the contact nodes not relaxed after each correction (``--no-contact-relaxation``; likewise).
-ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "no-relaxation")
+# the contact nodes relaxed after each correction (``--contact-relaxation``, which the preset has not).
+ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
-            "contact+no-relaxation")
+            "contact+relaxation")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
@@ -134,7 +134,7 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
     contact = base != "no-contact"
     settings = PRESETS["fast"].updated(dict(contact=contact, krylov=base == "contact-krylov" or None,
                                             newton_energy_tolerance=args.newton_energy_tolerance,
-                                            contact_relaxation="no-relaxation" not in ablations))
+                                            contact_relaxation=True if "relaxation" in ablations else None))
     tracker = Tracker(model, settings)
     problem = tracker.problem
     if "exact-lips" in ablations:

@@ -65,7 +65,7 @@ def main():
     parser.add_argument("--dhat", type=float, default=0.05)
     parser.add_argument("--stiffness", type=float, default=10.0)
     parser.add_argument("--contact-relaxation", action="store_true",
-                        help="relax the nodes in contact after each Newton correction (as `fit --fast`)")
+                        help="relax the nodes in contact after each Newton correction (fit --contact-relaxation)")
     parser.add_argument("--newton-energy-tolerance", type=float,
                         help="mN mm: also stop Newton once a correction would release less (as `fit --fast`)")
     parser.add_argument("--load-steps", type=int, default=1,

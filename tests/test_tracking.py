@@ -53,12 +53,12 @@ def test_default_preset_is_the_library_default_and_fast_differs_where_documented
     changed = {key for key in RECORD_FIELDS if fast.value(key) != PRESETS["default"].value(key)}
     assert changed == {"gn_steps", "fresh_jacobians", "approximate_jacobians", "reuse_factorization",
                        "newton_tolerance", "newton_energy_tolerance", "refresh_contraction",
-                       "line_search_iterations", "contact_relaxation"}
+                       "line_search_iterations"}
     assert fast.problem_options() == dict(reuse_factorization=True, refresh_contraction=0.5,
                                           newton_tolerance=1e-2, newton_energy_tolerance=10.0,
                                           line_search_iterations=3, krylov_on_old_factor=False,
                                           intraoral_pressure=False, lip_contact=None, contact=None,
-                                          contact_relaxation=True)
+                                          contact_relaxation=False)
 
 
 def test_updated_keeps_what_is_none_and_leaves_the_preset_alone():

@@ -1068,10 +1068,11 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "outside each other (docs/contact.md)")
     p.add_argument("--contact-relaxation", action="store_true",
                    help="with --contact or --object: after each Newton correction the nodes in contact are brought "
-                        "to their own equilibrium by a local Newton, the rest of the face held (as fit --fast); "
+                        "to their own equilibrium by a local Newton, the rest of the face held (fit "
+                        "--contact-relaxation); "
                         "with --newton-energy-tolerance 10 the lips closed hard on the 404K face without a failed "
-                        "Newton solve; on the 5K face it costs more than it saves (docs/contact.md, \"Lip "
-                        "self-contact\")")
+                        "Newton solve, which fail without it; on the 5K face it costs more than it saves "
+                        "(docs/contact.md, \"Lip self-contact\")")
     p.add_argument("--newton-energy-tolerance", type=float, metavar="MJ",
                    help="with --contact or --object: Newton also stops once a correction would release less "
                         "energy than this (mN mm; fit --fast takes 10): pressed lips slide along each other in "
@@ -1271,8 +1272,8 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "mode only (docs/contact.md)")
     p.add_argument("--contact-relaxation", action=argparse.BooleanOptionalAction, default=None,
                    help="with --contact: after each Newton correction the nodes in contact are brought to their "
-                        "own equilibrium by a local Newton, the rest of the face held, so that pressed lips "
-                        "sliding on each other cost fewer factorisations (on with --fast; docs/performance.md, "
+                        "own equilibrium by a local Newton, the rest of the face held (off by default and in "
+                        "--fast: tracking at 20K-404K tets paid more for it than it saved; docs/performance.md, "
                         "\"Contact in tracking\")")
     p.add_argument("--approximate-jacobians", type=float, metavar="MM",
                    help="a Jacobian may use the last factor of the equilibrium solve if it was made at "

@@ -71,7 +71,8 @@ class TrackingSettings:
     # the lips and cheeks rests on the model's teeth (physics/contact.py): ``contact_surfaces``.
     contact: bool = False
     # With contact: the nodes in contact relaxed by a local Newton after each correction
-    # (equilibrium/relaxation.py).
+    # (equilibrium/relaxation.py). Off in --fast: tracking at 20K, 100K and 404K tets paid more
+    # for it than it saved (docs/performance.md, "Contact in tracking").
     contact_relaxation: bool = False
 
     def __post_init__(self):
@@ -141,5 +142,5 @@ PRESETS = {
     "fast": TrackingSettings(
         FitSettings(max_gn_steps=2, max_fresh_jacobians=1, approximate_jacobian_within=0.3),
         reuse_factorization=True, refresh_contraction=0.5, newton_tolerance=1e-2, newton_energy_tolerance=10.0,
-        line_search_iterations=3, contact_relaxation=True),
+        line_search_iterations=3),
 }
