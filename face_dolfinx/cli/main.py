@@ -404,11 +404,12 @@ def simulate_animation(model, args) -> None:
     animation.check(model)
     start = time.perf_counter()
     contact = _object_from_args(args)  # --contact: the lips on the teeth (objects are refused with --animation)
+    contact_solver = _contact_solver(args)
     try:  # the model may lack what the animation needs (an 'oral' surface for its pressure) or teeth
         problem = FaceProblem(model, degree=args.degree, intraoral_pressure=animation.has_pressure,
                               newton_tolerance=args.newton_tolerance, reuse_factorization=args.reuse_factorization,
                               contact=contact[0] if contact is not None else None, lip_contact=_lip_contact(args),
-                              **_contact_solver(args))
+                              **contact_solver)
     except ValueError as error:
         raise SystemExit(f"face-dolfinx: error: {animation.source}{' with --contact' if args.contact else ''}: "
                          f"{error}") from None
@@ -423,8 +424,7 @@ def simulate_animation(model, args) -> None:
                                                    contact=args.contact,
                                                    contact_surfaces=["lips", "teeth"] if args.contact else [],
                                                    # recorded when set, so that older folders resume
-                                                   **{key: value for key, value in _contact_solver(args).items()
-                                                      if value}))
+                                                   **{key: value for key, value in contact_solver.items() if value}))
     except FitFolderError as error:
         raise SystemExit(str(error)) from None
     if folder.finished:
