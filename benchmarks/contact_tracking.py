@@ -5,8 +5,8 @@ A bilabial take ("ma ba pa", ``capture/synthetic.py``: the orbicularis oris at 0
 lips together with the jaw closed, then an open vowel) of ``--take-frames`` frames at 60 Hz is
 solved with contact (``--truth-contact``: by default the lips on each other and the lining on the
 teeth, as ``fit --contact`` models the face; ``lips``: the lips only) at the model's marker sites,
-with 0.5 mm noise and no head motion; the stretch of ``--frames`` frames from ``--start`` (by
-default the lips closing) is tracked by ``face_dolfinx.tracking.Tracker`` (the loop of
+with 0.5 mm noise and no head motion (``--head-motion``: as in a capture); the stretch of
+``--frames`` frames from ``--start`` (by default the lips closing) is tracked by ``face_dolfinx.tracking.Tracker`` (the loop of
 ``run.py fit``, every frame written to a fit folder under ``--out``) with ``fit --fast``
 (``PRESETS["fast"]``), first without contact, then with the lips' barrier and the teeth
 (``TrackingSettings(contact=True)``, what ``fit --contact`` builds), each variant on a problem of
@@ -20,7 +20,9 @@ largest over the ranks), lip barrier pairs and teeth contact nodes at the fitted
 lips' smallest distance and penetration (also without contact: how far they pass), marker RMS and
 activation error. Then one summary line: per variant the means over the warm frames (every frame
 but the first, which starts from rest) and, per warm frame both variants fitted, the time ratio
-contact on / off, against the target of at most 1.5.
+contact on / off, against the target of at most 1.5, also per kind of contact at the fitted
+equilibrium (``contact_state``: the lips pressed, the lining on the teeth only, nothing): over a
+whole take (``--start 0 --frames 60``) what each costs.
 
 It cannot run for ever: no variant starts a frame once it has tracked for ``--max-seconds``, and
 the whole run stops (summary line with what it has, then MPI abort) after ``--abort-seconds``.
@@ -47,11 +49,13 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # however short the collision-free bound made its step, and Newton corrections that climb the
 # energy taken (``QuasistaticSolver.refuse_ascent`` off), Newton stopped by the step tolerance
 # alone (``--newton-energy-tolerance`` off; the result files recorded before the preset had it), and
-# the contact nodes relaxed after each correction (``--contact-relaxation``, which the preset has not).
-ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation")
+# the contact nodes relaxed after each correction (``--contact-relaxation``, which the preset has not),
+# and a Gauss-Newton prediction bounded against the teeth standing still at the last equilibrium's
+# poses instead of moving with their bones (``ContactPotential.relative_fraction``).
+ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
-            "contact+relaxation")
+            "contact+relaxation", "contact+static-teeth")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
@@ -141,6 +145,10 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.lips.add_newton_correction = lambda x, A, constrained: False
     if "ascents" in ablations:
         problem.solver.refuse_ascent = False
+    if "static-teeth" in ablations:
+        teeth = problem.teeth_contact
+        relative = teeth.relative_fraction
+        teeth.relative_fraction = lambda start, end, end_poses: relative(start, end, teeth.poses)
     if "step-stop-only" in ablations:
         problem.solver.energy_tolerance = None
     if "contraction-refresh" in ablations:
@@ -205,6 +213,14 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
                                   f"{len(rows)} of {args.frames} frames")), flush=True)
 
 
+def contact_state(row: dict) -> str:
+    """What touches in a frame with contact on: "lips" (barrier pairs between the lips, the teeth
+    maybe too), "teeth" (the lining on the teeth only) or "none"."""
+    if row["lip_pairs"]:
+        return "lips"
+    return "teeth" if row["teeth_contact_nodes"] else "none"
+
+
 def summary(rows: dict, args, comm, model, setup_seconds: float, aborted: bool = False) -> dict:
     variants = []
     for name, frames in rows.items():
@@ -223,7 +239,7 @@ def summary(rows: dict, args, comm, model, setup_seconds: float, aborted: bool =
                                            if warm and warm[0]["teeth_contact_nodes"] is not None else None),
             max_lip_penetration_mm=max((r["lip_penetration_mm"] for r in frames), default=None)))
     off = {r["frame"]: r for r in rows.get("no-contact", []) if r["warm"]}
-    ratios, mean_ratios = {}, {}
+    ratios, mean_ratios, by_contact = {}, {}, {}
     for name in rows:
         if name == "no-contact":
             continue
@@ -232,12 +248,23 @@ def summary(rows: dict, args, comm, model, setup_seconds: float, aborted: bool =
         ratios[name] = {frame: round(on[frame]["seconds"] / off[frame]["seconds"], 2) for frame in both}
         mean_ratios[name] = (round(sum(on[f]["seconds"] for f in both) / sum(off[f]["seconds"] for f in both), 2)
                              if both else None)
+        # The frames by what touches at the fitted equilibrium: what each kind of contact costs.
+        groups = {}
+        for frame in both:
+            groups.setdefault(contact_state(on[frame]), []).append(frame)
+        by_contact[name] = {state: dict(
+            frames=len(frames),
+            ratio=round(sum(on[f]["seconds"] for f in frames) / sum(off[f]["seconds"] for f in frames), 2),
+            within_target=sum(ratios[name][f] <= TARGET_RATIO for f in frames),
+            mean_factorizations=round(float(np.mean([on[f]["factorizations"] for f in frames])), 2),
+            mean_factorizations_without=round(float(np.mean([off[f]["factorizations"] for f in frames])), 2))
+            for state, frames in groups.items()}
     return dict(summary=dict(
         tets=model.mesh.topology.index_map(3).size_global, ranks=comm.size,
         truth_tets=args.truth_tets or args.tets, take_frames=args.take_frames,
         first_frame=args.start, frames=args.frames, max_seconds=args.max_seconds, aborted=aborted,
         setup_seconds=round(setup_seconds, 1), variants=variants, warm_ratio_by_frame=ratios,
-        warm_ratio=mean_ratios, target_ratio=TARGET_RATIO,
+        warm_ratio=mean_ratios, warm_ratio_by_contact=by_contact, target_ratio=TARGET_RATIO,
         within_target={name: None if ratio is None else ratio <= TARGET_RATIO for name, ratio in mean_ratios.items()}))
 
 
@@ -249,6 +276,8 @@ def main():
                         help="length of the bilabial take at 60 Hz: 60 frames put a closure into about 12")
     parser.add_argument("--start", type=int, default=5, help="first tracked frame of the take (5: the lips closing)")
     parser.add_argument("--noise", type=float, default=0.5, help="marker noise, RMS of the 3D error (mm)")
+    parser.add_argument("--head-motion", action="store_true",
+                        help="the take's head moves as in a capture (default: still, as the result files before it)")
     parser.add_argument("--truth-contact", choices=("lips", "lips+teeth"),
                         help="what touches in the truth's solves (default: as fit --contact, lips+teeth)")
     parser.add_argument("--max-seconds", type=float, default=1800.0,
@@ -298,7 +327,7 @@ def main():
             print(json.dumps(dict(truth_frame=args.start + index, elapsed_s=round(time.perf_counter() - began, 1))),
                   flush=True)
     capture, truth = synthesize_take(truth_problem, MarkerSet(truth_problem, sites, names=names), truth_model, "bilabial",
-                                     n_frames=args.take_frames, noise=args.noise, head_motion=False, frames=frames,
+                                     n_frames=args.take_frames, noise=args.noise, head_motion=args.head_motion, frames=frames,
                                      progress=progress)
     del truth_problem, truth_model
     placement = place_on_model(model, capture)

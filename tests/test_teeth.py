@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import on_rank_0
-from face_dolfinx.model.bones import AffineMap
+from face_dolfinx.model.bones import AffineMap, rotation
 from face_dolfinx.model.folder import ModelError, load_model
 from face_dolfinx.model.surface_file import write_triangle_surface
 from face_dolfinx.model.bones import jaw_pose
@@ -340,6 +340,29 @@ def test_a_prediction_cut_short_while_the_jaw_closes_starts_with_the_teeth_at_th
     assert report.converged and report.load_steps == 1
     assert "Newton from the predicted shape failed" not in caplog.text
     assert min(gaps) > 0.0
+
+
+def test_a_prediction_that_moves_the_head_with_its_teeth_is_taken_whole(model, pressed, caplog):
+    """A Gauss-Newton prediction that carries the pressed face rigidly with the cranium (2 degrees
+    about a tilted axis and 1 mm): the lining moves with the teeth it rests on. The teeth's bound on
+    each node's path relative to its teeth (``relative_fraction``) leaves it whole where a bound
+    against the teeth standing still cuts it, and Newton from it has nothing left to do."""
+    problem = FaceProblem(model, contact=ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS))
+    problem.u.x.array[:] = pressed[0].u.x.array
+    problem.set_controls(pressed[0].controls)
+    teeth = problem.teeth_contact
+    turn = AffineMap(rotation(np.array([1.0, 0.3, 0.2]), np.radians(2.0)), np.array([0.0, 0.6, 0.8]))
+    X = problem.dof_coordinates
+    start = problem.u.x.array.copy()
+    guess = (turn.apply(X + start.reshape(-1, 3)) - X).reshape(-1)
+    cranium = turn.compose(problem.controls.cranium)
+    assert teeth.admissible_fraction(start, guess) < 1.0
+    assert teeth.relative_fraction(start, guess, problem.teeth_poses(replace(problem.controls, cranium=cranium))) == 1.0
+    with caplog.at_level("DEBUG", logger="face_dolfinx.physics.problem"):
+        report = problem.solve(cranium=cranium, guess=guess)
+    assert report.converged and report.load_steps == 1 and report.newton_iterations <= 1
+    assert "prediction pulled back" not in caplog.text
+    assert problem.comm.allreduce(np.abs(problem.u.x.array - guess).max(initial=0.0), op=MPI.MAX) < 1e-6
 
 
 def test_same_force_on_one_rank(model, builtin_model_path, pressed):

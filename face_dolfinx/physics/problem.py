@@ -496,10 +496,22 @@ class FaceProblem:
             equilibrium = self.u.x.array.copy()
             # A long linear prediction can invert elements: pull it back towards the equilibrium.
             fraction = self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - guess)
+            cuts = [("inversion guard", fraction)]
             # ... or let the lips pass through each other, or the lining into the teeth
-            for term in (self.lips, self.teeth_contact, self.contact):
-                if term is not None:
-                    fraction *= term.admissible_fraction(equilibrium, equilibrium + fraction * (guess - equilibrium))
+            for label, term in (("lips", self.lips), ("teeth", self.teeth_contact), ("objects", self.contact)):
+                if term is None:
+                    continue
+                end = equilibrium + fraction * (guess - equilibrium)
+                if term is self.teeth_contact:  # the teeth move with their bones along the prediction
+                    cut = term.relative_fraction(equilibrium, end,
+                                                 self.teeth_poses(start.interpolate(target, fraction)))
+                else:
+                    cut = term.admissible_fraction(equilibrium, end)
+                fraction *= cut
+                cuts.append((label, cut))
+            if fraction < 1.0:
+                log.debug("prediction pulled back to %.3g of the way (%s)", fraction,
+                          ", ".join(f"{label} {cut:.3g}" for label, cut in cuts if cut < 1.0))
             self.u.x.array[:] = equilibrium + fraction * (guess - equilibrium)
             # The pulled-back prediction stands for the controls that far along: its bone nodes go
             # exactly to their frames there (the prediction is linear in the controls) and the
