@@ -6,11 +6,12 @@ lips together with the jaw closed, then an open vowel) of ``--take-frames`` fram
 solved with contact (``--truth-contact``: by default the lips on each other and the lining on the
 teeth, as ``fit --contact`` models the face; ``lips``: the lips only) at the model's marker sites,
 with 0.5 mm noise and no head motion (``--head-motion``: as in a capture); the stretch of
-``--frames`` frames from ``--start`` (by default the lips closing) is tracked by ``face_dolfinx.tracking.Tracker`` (the loop of
-``run.py fit``, every frame written to a fit folder under ``--out``) with ``fit --fast``
-(``PRESETS["fast"]``), first without contact, then with the lips' barrier and the teeth
-(``TrackingSettings(contact=True)``, what ``fit --contact`` builds), each variant on a problem of
-its own; a contact variant may switch off, by a "+" in its name, what ``ABLATIONS`` lists.
+``--frames`` frames from ``--start`` (by default the lips closing) is tracked by
+``face_dolfinx.tracking.Tracker`` (the loop of ``run.py fit``, every frame written to a fit folder
+under ``--out``) with ``fit --fast`` (``PRESETS["fast"]``), first without contact, then with the
+lips' barrier and the teeth (``TrackingSettings(contact=True)``, what ``fit --contact`` builds),
+each variant on a problem of its own; a contact variant may switch off, by a "+" in its name, what
+``ABLATIONS`` lists.
 
 One JSON line per frame as it is done (rank 0): seconds of the fit, Newton iterations (every
 Newton solve of the frame, the teeth's push-out included), Gauss-Newton steps, factorisations,

@@ -2,8 +2,10 @@
 built-in face's teeth are closed and behind the lining, written and read with the model, carried
 along to a subject; the lips pressed on them by the orbicularis oris stay outside at every Newton
 iterate and rest on them (and go through them without the contact) after one Newton solve of
-few iterations, also from a prediction that would enter the teeth or close the jaw onto the lining; a jaw opened and closed with the teeth on keeps every lining node outside them at
-every Newton iterate; the same force on 1 and 2 ranks; bad teeth are refused naming the model file.
+few iterations, also from a prediction that would enter the teeth or close the jaw onto the lining,
+and a prediction that carries the face with the head and its teeth is not cut; a jaw opened and
+closed with the teeth on keeps every lining node outside them at every Newton iterate; the same
+force on 1 and 2 ranks; bad teeth are refused naming the model file.
 """
 import shutil
 from dataclasses import replace
