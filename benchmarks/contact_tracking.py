@@ -294,7 +294,8 @@ def main():
                         help="fit --newton-energy-tolerance of the contact variants (mN mm; default: the preset's)")
     parser.add_argument("--out", default="runs/contact_tracking", help="folder for the variants' fit folders")
     parser.add_argument("-v", "--verbose", action="store_true",
-                        help="log every Newton solve and Gauss-Newton step to standard error (rank 0)")
+                        help="log every Newton solve, Gauss-Newton step and pulled-back prediction to standard "
+                             "error (rank 0)")
     args = parser.parse_args()
     if not 0 <= args.start < args.start + args.frames <= args.take_frames:
         raise SystemExit(f"--start {args.start} + --frames {args.frames} must lie within --take-frames "
