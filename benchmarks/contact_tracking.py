@@ -52,11 +52,14 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # alone (``--newton-energy-tolerance`` off; the result files recorded before the preset had it), and
 # the contact nodes relaxed after each correction (``--contact-relaxation``, which the preset has not),
 # and a Gauss-Newton prediction bounded against the teeth standing still at the last equilibrium's
-# poses instead of moving with their bones (``ContactPotential.relative_fraction``).
-ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth")
+# poses instead of moving with their bones (``ContactPotential.relative_fraction``), and a prediction
+# that takes lining nodes into the teeth cut short instead of those nodes moved out of the teeth
+# (``ContactPotential.projected_end``).
+ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
+             "cut-lining")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
-            "contact+relaxation", "contact+static-teeth")
+            "contact+relaxation", "contact+static-teeth", "contact+cut-lining")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
@@ -150,6 +153,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         teeth = problem.teeth_contact
         relative = teeth.relative_fraction
         teeth.relative_fraction = lambda start, end, end_poses: relative(start, end, teeth.poses)
+    if "cut-lining" in ablations:
+        problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "step-stop-only" in ablations:
         problem.solver.energy_tolerance = None
     if "contraction-refresh" in ablations:

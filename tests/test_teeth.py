@@ -19,7 +19,7 @@ from face_dolfinx.model.bones import AffineMap, rotation
 from face_dolfinx.model.folder import ModelError, load_model
 from face_dolfinx.model.surface_file import write_triangle_surface
 from face_dolfinx.model.bones import jaw_pose
-from face_dolfinx.physics.contact import TEETH_DHAT, TEETH_STIFFNESS, ContactSettings
+from face_dolfinx.physics.contact import CCD_KEEP, TEETH_DHAT, TEETH_STIFFNESS, ContactSettings
 from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity
@@ -365,6 +365,42 @@ def test_a_prediction_that_moves_the_head_with_its_teeth_is_taken_whole(model, p
     assert report.converged and report.load_steps == 1 and report.newton_iterations <= 1
     assert "prediction pulled back" not in caplog.text
     assert problem.comm.allreduce(np.abs(problem.u.x.array - guess).max(initial=0.0), op=MPI.MAX) < 1e-6
+
+
+def test_a_prediction_that_takes_the_lining_into_the_teeth_moves_it_out(model, pressed, caplog):
+    """A Gauss-Newton prediction that carries the lining resting on the teeth into them (here the
+    pressed face translated 0.45 mm against the teeth, its nearest lining node 0.28 mm from them):
+    the teeth's bound would cut the whole face's prediction short; instead each lining node whose
+    path comes too close stops at the teeth's tangent plane where it does and slides on along it
+    (``projected_end``; only those nodes move, no further than asked), and Newton starts from the
+    prediction taken whole and reaches the pressed equilibrium, no node inside at any iterate."""
+    problem = FaceProblem(model, contact=ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS))
+    problem.u.x.array[:] = pressed[0].u.x.array
+    problem.set_controls(pressed[0].controls)
+    teeth = problem.teeth_contact
+    start = problem.u.x.array.copy()
+    gaps = teeth.gaps(start)
+    obj, node = np.unravel_index(np.argmin(gaps), gaps.shape)
+    normal = teeth.objects[obj].gaps(teeth.positions(start)[[node]], teeth.poses[obj])[1][0]
+    guess = (start.reshape(-1, 3) - 0.45 * normal).reshape(-1)
+    assert teeth.gaps(guess).min() < -0.1 and teeth.admissible_fraction(start, guess) < 0.6
+
+    projected = teeth.projected_end(start, guess, teeth.poses, limit=0.5)
+    moves = np.linalg.norm(teeth.positions(projected) - teeth.positions(guess), axis=1)
+    assert 0.0 < moves.max() <= 0.5
+    assert (teeth.gaps(projected) >= 0.5 * (1.0 - CCD_KEEP) * gaps).all()
+    changed = np.flatnonzero(np.any(projected.reshape(-1, 3) != guess.reshape(-1, 3), axis=1))
+    assert np.isin(changed, teeth.surface.local_blocks[moves[teeth.surface.local_nodes] > 0.0]).all()
+    assert teeth.projected_end(start, guess, teeth.poses, limit=0.5 * moves.max()) is None
+
+    iterate_gaps = []
+    problem.solver.snes.setMonitor(lambda snes, it, norm: iterate_gaps.append(teeth.min_gap(snes.getSolution().array_r)))
+    with caplog.at_level("DEBUG", logger="face_dolfinx.physics.problem"):
+        report = problem.solve(guess=guess)
+    problem.solver.snes.cancelMonitor()
+    assert "lining moved out of the teeth instead" in caplog.text and "prediction pulled back" not in caplog.text
+    assert report.converged and report.load_steps == 1 and min(iterate_gaps) > 0.0
+    assert problem.comm.allreduce(np.abs(problem.u.x.array - start).max(initial=0.0), op=MPI.MAX) < 1e-3
 
 
 def test_same_force_on_one_rank(model, builtin_model_path, pressed):

@@ -645,6 +645,52 @@ class ContactPotential:
             fraction = min(fraction, float(t.min(initial=np.inf)))
         return fraction
 
+    def projected_end(self, start: np.ndarray, end: np.ndarray, end_poses, limit: float) -> np.ndarray | None:
+        """``end`` (a displacement, the objects then at ``end_poses``) with every node whose straight
+        path relative to an object (as in ``relative_fraction``) comes closer to it than
+        (1 - CCD_KEEP) of its gap at ``start`` (the objects at their present poses) stopped at the
+        object's tangent plane where it first came that close, free to slide along it: its
+        place at the end moved along that plane's normal until it lies on it (local dof array,
+        ghosts included; the same on every rank). None if a node would move farther than
+        ``limit`` (mm), or still ends closer than half that clearance (a curved surface), to that
+        object or another."""
+        kept = np.flatnonzero(~self.ignored)
+        x = self.positions(end)
+        x0, x1 = self.positions(start)[kept], x[kept]
+        clearances = []
+        moved = np.zeros(len(kept), dtype=bool)
+        for obj, pose, end_pose in zip(self.objects, self.poses, end_poses):
+            to_start = pose.compose(end_pose.inverse())
+            moves = to_start.apply(x1) - x0
+            reach = np.linalg.norm(moves, axis=1) / CCD_KEEP
+            clearance = (1.0 - CCD_KEEP) * obj.gaps(x0, pose, within=reach)[0]
+            clearances.append(clearance)
+            t = advanced_contact(obj, pose, x0, moves, clearance, obj.first_contact(x0, moves, pose, clearance))
+            hit = np.flatnonzero(t < 1.0)
+            if not hit.size:
+                continue
+            contact = x0[hit] + t[hit, None] * moves[hit]
+            normal = obj.gaps(contact, pose, within=clearance[hit] + self.dhat)[1]
+            ends = x0[hit] + moves[hit]
+            push = np.maximum(np.einsum("ij,ij->i", contact - ends, normal), 0.0)
+            if push.max(initial=0.0) > limit:
+                return None
+            x1[hit] = to_start.inverse().apply(ends + push[:, None] * normal)
+            moved[hit] = True
+        if not moved.any():
+            return end.copy()
+        for obj, end_pose, clearance in zip(self.objects, end_poses, clearances):
+            if (obj.gaps(x1[moved], end_pose, within=self.dhat)[0] < 0.5 * clearance[moved]).any():
+                return None
+        x[kept[moved]] = x1[moved]
+        changed = np.zeros(len(x), dtype=bool)
+        changed[kept[moved]] = True
+        local = changed[self.surface.local_nodes]
+        out = end.copy()
+        out.reshape(-1, 3)[self.surface.local_blocks[local]] = \
+            (x - self.surface.rest)[self.surface.local_nodes[local]]
+        return out
+
     # -- moving the objects ------------------------------------------------------------------
     def closes_in(self, displacement: np.ndarray, old_poses, new_poses) -> bool:
         """Whether moving the objects from ``old_poses`` to ``new_poses`` takes more of some node's

@@ -55,6 +55,10 @@ from face_dolfinx.physics.rigid_mesh import TriangleMesh
 
 log = logging.getLogger(__name__)
 
+# mm: the farthest a Gauss-Newton prediction's lining node is moved out of the teeth
+# (``FaceProblem._lining_projected``) rather than the prediction cut short.
+PROJECTION_LIMIT = 0.5
+
 
 @dataclass
 class Controls:
@@ -503,8 +507,13 @@ class FaceProblem:
                     continue
                 end = equilibrium + fraction * (guess - equilibrium)
                 if term is self.teeth_contact:  # the teeth move with their bones along the prediction
-                    cut = term.relative_fraction(equilibrium, end,
-                                                 self.teeth_poses(start.interpolate(target, fraction)))
+                    poses = self.teeth_poses(start.interpolate(target, fraction))
+                    cut = term.relative_fraction(equilibrium, end, poses)
+                    projected = self._lining_projected(equilibrium, end, poses) if cut < 1.0 else None
+                    if projected is not None:
+                        guess = equilibrium + (projected - equilibrium) / fraction
+                        cuts.append(("teeth, lining projected instead", cut))
+                        continue
                 else:
                     cut = term.admissible_fraction(equilibrium, end)
                 fraction *= cut
@@ -564,6 +573,28 @@ class FaceProblem:
                                                 max_halvings=max_halvings)
         self.set_controls(target)
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
+
+    def _lining_projected(self, equilibrium: np.ndarray, end: np.ndarray, poses) -> np.ndarray | None:
+        """The prediction ``end`` with the lining nodes that it takes too close to the teeth (at
+        ``poses``) moved out along the teeth's normals (``ContactPotential.projected_end``), or
+        None where that would move a node farther than PROJECTION_LIMIT, invert a cell, or let
+        the lips pass each other. A lining node sliding along a tooth's curved surface leaves it
+        on a straight prediction; the teeth's bound cut the whole face's prediction short for
+        that, and the cut prediction was taken by two solves that push the lining out of the
+        teeth moved to their poses, before Newton."""
+        projected = self.teeth_contact.projected_end(equilibrium, end, poses, PROJECTION_LIMIT)
+        if projected is None:
+            return None
+        guard = self.solver.inversion_guard
+        if guard.min_ratio(projected) < min(guard.min_volume_ratio, 0.5 * guard.min_ratio(equilibrium)):
+            return None
+        if self.lips is not None and self.lips.admissible_fraction(equilibrium, projected) < 1.0:
+            return None
+        moves = np.linalg.norm((projected - end).reshape(-1, 3), axis=1)
+        moved = self.comm.allreduce(int(np.count_nonzero(moves[:self.V.dofmap.index_map.size_local] > 0.0)))
+        log.debug("prediction's lining moved out of the teeth instead: %d nodes, up to %.3g mm", moved,
+                  self.comm.allreduce(float(moves.max(initial=0.0)), op=MPI.MAX))
+        return projected
 
     def _put_objects(self, controls: Controls) -> None:
         """Put the contact objects and the teeth at their poses in ``controls`` (nothing else)."""
