@@ -498,30 +498,33 @@ class FaceProblem:
         if guess is not None:
             began = time.perf_counter()
             equilibrium = self.u.x.array.copy()
+            origin = self._carry_head(start, target)
+            carried = self.u.x.array.copy()
             # A long linear prediction can invert elements: pull it back towards the equilibrium.
-            fraction = self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - guess)
+            fraction = self.solver.inversion_guard.step_fraction(carried, carried - guess)
             cuts = [("inversion guard", fraction)]
             # ... or let the lips pass through each other, or the lining into the teeth
             for label, term in (("lips", self.lips), ("teeth", self.teeth_contact), ("objects", self.contact)):
                 if term is None:
                     continue
-                end = equilibrium + fraction * (guess - equilibrium)
+                end = carried + fraction * (guess - carried)
                 if term is self.teeth_contact:  # the teeth move with their bones along the prediction
-                    poses = self.teeth_poses(start.interpolate(target, fraction))
-                    cut = term.relative_fraction(equilibrium, end, poses)
-                    projected = self._lining_projected(equilibrium, end, poses) if cut < 1.0 else None
+                    poses = self.teeth_poses(origin.interpolate(target, fraction))
+                    cut = term.relative_fraction(carried, end, poses)
+                    projected = self._lining_projected(carried, end, poses) if cut < 1.0 else None
                     if projected is not None:
-                        guess = equilibrium + (projected - equilibrium) / fraction
+                        guess = carried + (projected - carried) / fraction
                         cuts.append(("teeth, lining projected instead", cut))
                         continue
                 else:
-                    cut = term.admissible_fraction(equilibrium, end)
+                    cut = term.admissible_fraction(carried, end)
                 fraction *= cut
                 cuts.append((label, cut))
             if fraction < 1.0:
-                log.debug("prediction pulled back to %.3g of the way (%s)", fraction,
-                          ", ".join(f"{label} {cut:.3g}" for label, cut in cuts if cut < 1.0))
-            self.u.x.array[:] = equilibrium + fraction * (guess - equilibrium)
+                log.debug("prediction pulled back to %.3g of the way (%s)%s", fraction,
+                          ", ".join(f"{label} {cut:.3g}" for label, cut in cuts if cut < 1.0),
+                          "" if origin is start else " after the head's rigid motion")
+            self.u.x.array[:] = carried + fraction * (guess - carried)
             # The pulled-back prediction stands for the controls that far along: its bone nodes go
             # exactly to their frames there (the prediction is linear in the controls) and the
             # objects and the teeth move there from the equilibrium's poses in solves that hold the
@@ -530,12 +533,12 @@ class FaceProblem:
             # node was inside (Newton's barrier blocks had no finite value; the fit ended).
             held = 0
             if self.contact is not None or self.teeth_contact is not None:
-                reached = start.interpolate(target, fraction) if fraction < 1.0 else target
+                reached = origin.interpolate(target, fraction) if fraction < 1.0 else target
                 self.set_controls(reached)
                 self.u.x.array.reshape(-1, 3)[self.bone_blocks] = self.bone_displacement.x.array.reshape(-1, 3)[
                     self.bone_blocks]
                 self.u.x.scatter_forward()
-                self._put_objects(start)
+                self._put_objects(origin)
                 held = self._clear_objects(reached)
                 if fraction < 1.0:
                     # The solve takes the bones the rest of the way by lifting; the objects and the
@@ -595,6 +598,28 @@ class FaceProblem:
         log.debug("prediction's lining moved out of the teeth instead: %d nodes, up to %.3g mm", moved,
                   self.comm.allreduce(float(moves.max(initial=0.0)), op=MPI.MAX))
         return projected
+
+    def _carry_head(self, start: Controls, target: Controls) -> Controls:
+        """Before a prediction with lip or teeth contact is bounded: carry the equilibrium (and the
+        teeth) rigidly along the cranium's change from ``start`` to ``target``, and return the
+        controls it is the equilibrium of (``start`` with the target's cranium frame; ``start``
+        itself, the unknown untouched, when the cranium stays, moves non-rigidly, or a contact
+        object stands in the way). A rigid motion keeps every distance, so the contact bounds
+        then cut only the non-rigid rest of the prediction, and a cut prediction leaves only that
+        rest to the lifting of Newton's first step, not most of the head's motion."""
+        if (self.lips is None and self.teeth_contact is None) or start.cranium.same_as(target.cranium):
+            return start
+        change = target.cranium.compose(start.cranium.inverse())
+        if np.abs(change.matrix.T @ change.matrix - np.eye(3)).max() > 1e-10:
+            return start
+        before = self.u.x.array.copy()
+        self._move_rigidly(start.cranium, target.cranium)
+        if self.contact is not None and self.contact.admissible_fraction(before, self.u.x.array) < 1.0:
+            self.u.x.array[:] = before
+            return start
+        origin = Controls(start.activations, target.cranium, start.jaw, start.pressure, start.objects)
+        self._put_objects(origin)
+        return origin
 
     def _put_objects(self, controls: Controls) -> None:
         """Put the contact objects and the teeth at their poses in ``controls`` (nothing else)."""
