@@ -54,12 +54,13 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # and a Gauss-Newton prediction bounded against the teeth standing still at the last equilibrium's
 # poses instead of moving with their bones (``ContactPotential.relative_fraction``), and a prediction
 # that takes lining nodes into the teeth cut short instead of those nodes moved out of the teeth
-# (``ContactPotential.projected_end``).
+# (``ContactPotential.projected_end``), and a prediction cut short with the head's rigid motion in
+# it instead of from the equilibrium carried with the head (``FaceProblem.carry_head``).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
-             "cut-lining")
+             "cut-lining", "cut-head")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
-            "contact+relaxation", "contact+static-teeth", "contact+cut-lining")
+            "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
@@ -153,6 +154,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         teeth = problem.teeth_contact
         relative = teeth.relative_fraction
         teeth.relative_fraction = lambda start, end, end_poses: relative(start, end, teeth.poses)
+    if "cut-head" in ablations:
+        problem.carry_head = False
     if "cut-lining" in ablations:
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "step-stop-only" in ablations:

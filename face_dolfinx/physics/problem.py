@@ -295,6 +295,9 @@ class FaceProblem:
         self.lips = None
         if lip_contact is not None:
             self.lips = LipContact(self.V, *lip_facets(model, lip_contact), lip_contact, self.bone_blocks)
+        # Whether a prediction with lip or teeth contact starts from the equilibrium carried with
+        # the head (``_carry_head``); False only to measure it.
+        self.carry_head = True
         energy_terms = tuple(term for term in (self.contact, self.teeth_contact, self.lips) if term is not None)
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
         # closed by the orbicularis oris at 1): Newton is given room before continuation.
@@ -581,10 +584,10 @@ class FaceProblem:
         """The prediction ``end`` with the lining nodes that it takes too close to the teeth (at
         ``poses``) moved out along the teeth's normals (``ContactPotential.projected_end``), or
         None where that would move a node farther than PROJECTION_LIMIT, invert a cell, or let
-        the lips pass each other. A lining node sliding along a tooth's curved surface leaves it
-        on a straight prediction; the teeth's bound cut the whole face's prediction short for
-        that, and the cut prediction was taken by two solves that push the lining out of the
-        teeth moved to their poses, before Newton."""
+        the lips pass each other. The linear prediction does not see the teeth beyond the
+        barrier's reach and takes lining nodes that arrive at them inside; the teeth's bound cut
+        the whole face's prediction short for those few nodes, and Newton took the cut prediction
+        after solves that push the lining out of the teeth moved to their poses."""
         projected = self.teeth_contact.projected_end(equilibrium, end, poses, PROJECTION_LIMIT)
         if projected is None:
             return None
@@ -607,7 +610,8 @@ class FaceProblem:
         object stands in the way). A rigid motion keeps every distance, so the contact bounds
         then cut only the non-rigid rest of the prediction, and a cut prediction leaves only that
         rest to the lifting of Newton's first step, not most of the head's motion."""
-        if (self.lips is None and self.teeth_contact is None) or start.cranium.same_as(target.cranium):
+        if (not self.carry_head or (self.lips is None and self.teeth_contact is None)
+                or start.cranium.same_as(target.cranium)):
             return start
         change = target.cranium.compose(start.cranium.inverse())
         if np.abs(change.matrix.T @ change.matrix - np.eye(3)).max() > 1e-10:
