@@ -296,7 +296,7 @@ class FaceProblem:
         if lip_contact is not None:
             self.lips = LipContact(self.V, *lip_facets(model, lip_contact), lip_contact, self.bone_blocks)
         # Whether a prediction with lip or teeth contact starts from the equilibrium carried with
-        # the head (``_carry_head``); False only to measure it.
+        # the head (``_carried_with_head``); False only to measure it.
         self.carry_head = True
         energy_terms = tuple(term for term in (self.contact, self.teeth_contact, self.lips) if term is not None)
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
@@ -486,7 +486,10 @@ class FaceProblem:
         """Equilibrium for the given controls (unspecified ones keep their values).
 
         Newton starts from ``guess`` (a dof array, e.g. the Gauss-Newton prediction X + dX/dc dc)
-        if given, else from the current equilibrium carried along the change of the cranium
+        if given, pulled back where it would invert cells or break a contact (with lip or teeth
+        contact, only its part beyond the current equilibrium carried rigidly with the cranium's
+        change; the lining it takes into the teeth moved out of them instead where that is
+        small), else from the current equilibrium carried along the change of the cranium
         frame. If that fails, continuation from the current equilibrium takes over, halving its
         step at most ``max_halvings`` times before raising EquilibriumError. ``objects``: the
         poses of the contact objects (``AffineMap``s, world frame).
@@ -501,7 +504,7 @@ class FaceProblem:
         if guess is not None:
             began = time.perf_counter()
             equilibrium = self.u.x.array.copy()
-            origin = self._carry_head(start, target)
+            origin = self._carried_with_head(start, target)
             carried = self.u.x.array.copy()
             # A long linear prediction can invert elements: pull it back towards the equilibrium.
             fraction = self.solver.inversion_guard.step_fraction(carried, carried - guess)
@@ -602,7 +605,7 @@ class FaceProblem:
                   self.comm.allreduce(float(moves.max(initial=0.0)), op=MPI.MAX))
         return projected
 
-    def _carry_head(self, start: Controls, target: Controls) -> Controls:
+    def _carried_with_head(self, start: Controls, target: Controls) -> Controls:
         """Before a prediction with lip or teeth contact is bounded: carry the equilibrium (and the
         teeth) rigidly along the cranium's change from ``start`` to ``target``, and return the
         controls it is the equilibrium of (``start`` with the target's cranium frame; ``start``
