@@ -628,22 +628,25 @@ class ContactPotential:
         with the jaw along the teeth ran into their old place: predictions cut to 0.2-0.3 of
         their length on the 20K face's jaw motions, with the lips apart."""
         kept = ~self.ignored
-        points = self.positions(start)[kept]
-        ends = self.positions(end)[kept]
-        fraction = 1.0
+        times = self._first_contacts(self.positions(start)[kept], self.positions(end)[kept], end_poses)
+        return min([1.0] + [float(t.min(initial=np.inf)) for *_, t in times])
+
+    def _first_contacts(self, points: np.ndarray, ends: np.ndarray, end_poses):
+        """Per object: the object, its present pose, the map from the frame of its pose in
+        ``end_poses`` to that of its present one, the moves of ``points`` (world, at the start) to
+        ``ends`` (at the end) relative to the object, their clearances ((1 - CCD_KEEP) of their
+        gaps at the start) and the first times they come that close (1 or more: not on the way)."""
         for obj, pose, end_pose in zip(self.objects, self.poses, end_poses):
-            moves = (ends if end_pose is pose else pose.compose(end_pose.inverse()).apply(ends)) - points
+            to_start = pose.compose(end_pose.inverse())
+            moves = (ends if end_pose is pose else to_start.apply(ends)) - points
             # A node farther than its move / CCD_KEEP cannot lose CCD_KEEP of its gap: a lower bound
             # of its gap will do. Its clearance is then smaller than (1 - CCD_KEEP) gap but still
             # positive, a collision-free bound, and its first contact lies beyond t = 1 with either
             # clearance.
             reach = np.linalg.norm(moves, axis=1) / CCD_KEEP
-            gap = obj.gaps(points, pose, within=reach)[0]
-            clearance = (1.0 - CCD_KEEP) * gap
-            t = advanced_contact(obj, pose, points, moves, clearance,
-                                 obj.first_contact(points, moves, pose, clearance))
-            fraction = min(fraction, float(t.min(initial=np.inf)))
-        return fraction
+            clearance = (1.0 - CCD_KEEP) * obj.gaps(points, pose, within=reach)[0]
+            yield obj, pose, to_start, moves, clearance, advanced_contact(
+                obj, pose, points, moves, clearance, obj.first_contact(points, moves, pose, clearance))
 
     def projected_end(self, start: np.ndarray, end: np.ndarray, end_poses, limit: float) -> np.ndarray | None:
         """``end`` (a displacement, the objects then at ``end_poses``) with every node whose straight
@@ -659,13 +662,9 @@ class ContactPotential:
         x0, x1 = self.positions(start)[kept], x[kept]
         clearances = []
         moved = np.zeros(len(kept), dtype=bool)
-        for obj, pose, end_pose in zip(self.objects, self.poses, end_poses):
-            to_start = pose.compose(end_pose.inverse())
-            moves = to_start.apply(x1) - x0
-            reach = np.linalg.norm(moves, axis=1) / CCD_KEEP
-            clearance = (1.0 - CCD_KEEP) * obj.gaps(x0, pose, within=reach)[0]
+        # Each object sees the nodes as the ones before it left them (their ends moved out of it).
+        for obj, pose, to_start, moves, clearance, t in self._first_contacts(x0, x1, end_poses):
             clearances.append(clearance)
-            t = advanced_contact(obj, pose, x0, moves, clearance, obj.first_contact(x0, moves, pose, clearance))
             hit = np.flatnonzero(t < 1.0)
             if not hit.size:
                 continue

@@ -505,7 +505,7 @@ class FaceProblem:
             began = time.perf_counter()
             equilibrium = self.u.x.array.copy()
             origin = self._carried_with_head(start, target)
-            carried = self.u.x.array.copy()
+            carried = equilibrium if origin is start else self.u.x.array.copy()
             # A long linear prediction can invert elements: pull it back towards the equilibrium.
             fraction = self.solver.inversion_guard.step_fraction(carried, carried - guess)
             cuts = [("inversion guard", fraction)]
@@ -594,8 +594,7 @@ class FaceProblem:
         projected = self.teeth_contact.projected_end(equilibrium, end, poses, PROJECTION_LIMIT)
         if projected is None:
             return None
-        guard = self.solver.inversion_guard
-        if guard.min_ratio(projected) < min(guard.min_volume_ratio, 0.5 * guard.min_ratio(equilibrium)):
+        if self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - projected) < 1.0:
             return None
         if self.lips is not None and self.lips.admissible_fraction(equilibrium, projected) < 1.0:
             return None
