@@ -361,6 +361,18 @@ class ContactSurface:
         """Local blocks of this rank's nodes whose (num_nodes, 3) ``forces`` are not zero."""
         return self.owned_blocks[np.any(forces[self.owned_nodes] != 0.0, axis=1)]
 
+    def placed(self, displacement: np.ndarray, positions: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+        """A copy of the local dof array ``displacement`` (ghosts included) with the surface nodes
+        ``nodes`` (surface indices, the same on every rank) put at ``positions`` (num_nodes, 3):
+        on every rank that owns them or sees them as ghosts."""
+        out = displacement.copy()
+        chosen = np.zeros(self.num_nodes, dtype=bool)
+        chosen[nodes] = True
+        for blocks, surface_nodes in ((self.owned_blocks, self.owned_nodes), (self.local_blocks, self.local_nodes)):
+            keep = chosen[surface_nodes]
+            out.reshape(-1, 3)[blocks[keep]] = (positions - self.rest)[surface_nodes[keep]]
+        return out
+
     def gather(self, values: np.ndarray) -> np.ndarray:
         """(num_nodes, 3) of a blocked dof array (owned part at least), from every rank."""
         mine = np.ascontiguousarray(values.reshape(-1, 3)[self.owned_blocks]).reshape(-1)
@@ -682,13 +694,7 @@ class ContactPotential:
             if (obj.gaps(x1[moved], end_pose, within=self.dhat)[0] < 0.5 * clearance[moved]).any():
                 return None
         x[kept[moved]] = x1[moved]
-        changed = np.zeros(len(x), dtype=bool)
-        changed[kept[moved]] = True
-        local = changed[self.surface.local_nodes]
-        out = end.copy()
-        out.reshape(-1, 3)[self.surface.local_blocks[local]] = \
-            (x - self.surface.rest)[self.surface.local_nodes[local]]
-        return out
+        return self.surface.placed(end, x, kept[moved])
 
     # -- moving the objects ------------------------------------------------------------------
     def closes_in(self, displacement: np.ndarray, old_poses, new_poses) -> bool:
