@@ -439,7 +439,9 @@ class LipContact:
         closer or inside."""
         push = np.zeros_like(x)
         for nodes, triangles, rim in self._facing:
-            triangle, closest, _, on_rim = _nearest_on(x[nodes], x, triangles, rim)
+            triangle, closest, _, weights = _nearest_on(x[nodes], x, triangles)
+            # A nearest point on the rim's vertices only (a border edge or vertex) tells no side.
+            on_rim = ((weights == 0.0) | rim[triangles[triangle]]).all(axis=1)
             corners = x[triangles[triangle]]
             normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
             normal /= np.linalg.norm(normal, axis=1)[:, None]
@@ -484,22 +486,20 @@ class LipContact:
         if not hit.size:
             return push
         half = (0.5 * (wanted - separation)[hit])[:, None] * normal[hit]
-        for nodes, sign in ((upper[i[hit]], 1.0), (lower[j[hit]], -1.0)):
-            for column in nodes.T:
-                # The largest move asked of each node (np.maximum.at on the moves' lengths).
-                length = np.zeros(len(x))
-                np.maximum.at(length, column, np.linalg.norm(half, axis=1))
-                chosen = np.linalg.norm(half, axis=1) >= length[column]
-                push[column[chosen]] = sign * half[chosen]
+        nodes = np.concatenate([upper[i[hit]].reshape(-1), lower[j[hit]].reshape(-1)])
+        moves = np.concatenate([np.repeat(half, 2, axis=0), -np.repeat(half, 2, axis=0)])
+        lengths = np.linalg.norm(moves, axis=1)
+        largest = np.zeros(len(x))
+        np.maximum.at(largest, nodes, lengths)
+        chosen = lengths >= largest[nodes]
+        push[nodes[chosen]] = moves[chosen]
         return push
 
 
-def _nearest_on(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, rim: np.ndarray | None = None,
-                candidates: int = 8):
+def _nearest_on(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, candidates: int = 8):
     """For each of ``points`` (P, 3) its nearest triangle of ``triangles`` (vertex indices into
     ``vertices``) among the ``candidates`` with the nearest centroids: the triangle's index, the
-    nearest point, its distance, and (with ``rim``, a flag per vertex) whether that point lies on
-    rim vertices only (an edge or vertex of the surface's border)."""
+    nearest point, its distance and its barycentric coordinates (``closest_points``)."""
     candidates = min(candidates, len(triangles))
     near = scipy.spatial.cKDTree(vertices[triangles].mean(axis=1)).query(points, candidates)[1]
     near = near.reshape(len(points), candidates)
@@ -508,13 +508,8 @@ def _nearest_on(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray,
     closest, weights, _ = closest_points(repeated, a, b, c)
     distance = np.linalg.norm(repeated - closest, axis=1).reshape(-1, candidates)
     rows, best = np.arange(len(points)), distance.argmin(axis=1)
-    triangle = near[rows, best]
-    closest = closest.reshape(-1, candidates, 3)[rows, best]
-    if rim is None:
-        return triangle, closest, distance[rows, best]
-    weights = weights.reshape(-1, candidates, 3)[rows, best]
-    on_rim = ((weights == 0.0) | rim[triangles[triangle]]).all(axis=1)
-    return triangle, closest, distance[rows, best], on_rim
+    return (near[rows, best], closest.reshape(-1, candidates, 3)[rows, best], distance[rows, best],
+            weights.reshape(-1, candidates, 3)[rows, best])
 
 
 class LipIterates:
