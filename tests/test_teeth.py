@@ -390,7 +390,7 @@ def test_a_prediction_that_takes_the_lining_into_the_teeth_moves_it_out(model, p
     assert 0.0 < moves.max() <= 0.5
     assert (teeth.gaps(projected) >= 0.5 * (1.0 - CCD_KEEP) * gaps).all()
     changed = np.flatnonzero(np.any(projected.reshape(-1, 3) != guess.reshape(-1, 3), axis=1))
-    assert np.isin(changed, teeth.surface.local_blocks[moves[teeth.surface.local_nodes] > 0.0]).all()
+    assert np.isin(changed, teeth.surface.local_blocks_of(moves > 0.0)[0]).all()
     assert teeth.projected_end(start, guess, teeth.poses, limit=0.5 * moves.max()) is None
 
     iterate_gaps = []

@@ -361,6 +361,14 @@ class ContactSurface:
         """Local blocks of this rank's nodes whose (num_nodes, 3) ``forces`` are not zero."""
         return self.owned_blocks[np.any(forces[self.owned_nodes] != 0.0, axis=1)]
 
+    def local_blocks_of(self, chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The local dof blocks on this rank (owned, or ghosts of its facets) of the surface nodes
+        flagged in ``chosen`` (num_nodes,), and those nodes' surface indices."""
+        blocks = np.concatenate([self.owned_blocks, self.local_blocks])
+        nodes = np.concatenate([self.owned_nodes, self.local_nodes])
+        keep = chosen[nodes]
+        return blocks[keep], nodes[keep]
+
     def placed(self, displacement: np.ndarray, positions: np.ndarray, nodes: np.ndarray) -> np.ndarray:
         """A copy of the local dof array ``displacement`` (ghosts included) with the surface nodes
         ``nodes`` (surface indices, the same on every rank) put at ``positions`` (num_nodes, 3):
@@ -368,9 +376,8 @@ class ContactSurface:
         out = displacement.copy()
         chosen = np.zeros(self.num_nodes, dtype=bool)
         chosen[nodes] = True
-        for blocks, surface_nodes in ((self.owned_blocks, self.owned_nodes), (self.local_blocks, self.local_nodes)):
-            keep = chosen[surface_nodes]
-            out.reshape(-1, 3)[blocks[keep]] = (positions - self.rest)[surface_nodes[keep]]
+        blocks, surface_nodes = self.local_blocks_of(chosen)
+        out.reshape(-1, 3)[blocks] = (positions - self.rest)[surface_nodes]
         return out
 
     def gather(self, values: np.ndarray) -> np.ndarray:

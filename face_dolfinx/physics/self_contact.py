@@ -28,6 +28,10 @@ Continuous collision detection (``ipctk.compute_collision_free_stepsize``) bound
 step so that no point of the line-search segment lets two lip primitives come closer than
 (1 - CCD_KEEP) of their smallest distance now: no iterate ever penetrates.
 
+A Gauss-Newton prediction (the equilibrium plus dX/dc times the change of the controls) that
+takes the pressed lips into each other is not cut short for them alone: ``projected_end`` moves
+the lip nodes and edges that it takes too close apart (``FaceProblem.solve``).
+
 Under MPI every rank gathers all lip nodes (a few hundred) and computes the same pairs; each adds
 the gradient and Hessian rows of the nodes it owns (columns anywhere). The energy and the step
 bound are reduced (min) over the ranks so that every rank takes the same step.
