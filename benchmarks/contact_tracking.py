@@ -57,11 +57,10 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # (``ContactPotential.projected_end``), and a prediction cut short with the head's rigid motion in
 # it instead of from the equilibrium carried with the head (``FaceProblem.carry_head``).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
-             "cut-lining", "cut-head", "cut-lips")
+             "cut-lining", "cut-head")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
-            "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
-            "contact+cut-lips")
+            "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
@@ -159,8 +158,6 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.carry_head = False
     if "cut-lining" in ablations:
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
-    if "cut-lips" in ablations:
-        problem.lips.projected_end = lambda start, end, limit: None
     if "step-stop-only" in ablations:
         problem.solver.energy_tolerance = None
     if "contraction-refresh" in ablations:

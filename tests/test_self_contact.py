@@ -310,42 +310,6 @@ def test_fit_of_pressed_lips_with_contact(model):
     assert problem.lips.min_distance(problem.u.x.array) > 0.0
 
 
-def test_a_prediction_that_takes_the_lips_into_each_other_moves_them_out(model, caplog):
-    """A Gauss-Newton prediction that carries the pressed lips (0.0004 mm apart) 1 % further along
-    their way from rest: 7 lip nodes end inside the other lip and upper and lower lip edges cross
-    in 59 places, so the lips' bound would cut the whole face's prediction to 0.017. Instead each
-    lip node too close to the other lip and each crossing pair of edges is moved apart
-    (``LipContact.projected_end``; measured: 35 lip nodes, by up to 0.02 mm): the lips intersect
-    nowhere, the straight path to the result is bounded at 0.95 instead, and Newton starts from
-    there, no iterate penetrating."""
-    problem = pressed_lips(model)
-    lips = problem.lips
-    start = problem.u.x.array.copy()
-    guess = 1.01 * start
-    cut = lips.admissible_fraction(start, guess)
-    assert cut < 0.05
-    assert ipctk.has_intersections(lips.mesh, lips.positions(guess))
-
-    projected = lips.projected_end(start, guess, limit=0.5)
-    moves = np.linalg.norm(lips.positions(projected) - lips.positions(guess), axis=1)
-    assert 0.0 < moves.max() < 0.05 and np.count_nonzero(moves) < 0.6 * lips.surface.num_nodes
-    assert not ipctk.has_intersections(lips.mesh, lips.positions(projected))
-    assert lips.admissible_fraction(start, projected) > max(0.9, 20.0 * cut)  # measured 0.95 against 0.017
-    changed = np.flatnonzero(np.any(projected.reshape(-1, 3) != guess.reshape(-1, 3), axis=1))
-    assert np.isin(changed, lips.surface.local_blocks_of(moves > 0.0)[0]).all()
-    assert lips.projected_end(start, guess, limit=0.5 * moves.max()) is None
-
-    iterates = LipIterates(lips, problem.V)
-    problem.solver.snes.setMonitor(iterates)
-    with caplog.at_level("DEBUG", logger="face_dolfinx.physics.problem"):
-        report = problem.solve(guess=guess)
-    problem.solver.snes.cancelMonitor()
-    assert "lips moved out of each other instead" in caplog.text and "(lips 0." not in caplog.text
-    assert report.converged and report.load_steps == 1
-    assert min(iterates.distances) > 0.0 and max(iterates.depths) == 0.0
-    assert problem.residual_norm() < 1e-6
-
-
 def test_tracking_with_contact_builds_the_lips_into_its_problem(model):
     """``fit --contact``: the tracking setting reaches the problem and the run's record."""
     from face_dolfinx.cli.main import parse_arguments, tracking_settings

@@ -514,26 +514,16 @@ class FaceProblem:
                 if term is None:
                     continue
                 end = carried + fraction * (guess - carried)
-                projected = None
                 if term is self.teeth_contact:  # the teeth move with their bones along the prediction
                     poses = self.teeth_poses(origin.interpolate(target, fraction))
                     cut = term.relative_fraction(carried, end, poses)
-                    if cut < 1.0:
-                        projected = self._lining_projected(carried, end, poses)
-                        cut = 1.0 if projected is not None else cut
+                    projected = self._lining_projected(carried, end, poses) if cut < 1.0 else None
+                    if projected is not None:
+                        guess = carried + (projected - carried) / fraction
+                        cuts.append(("teeth, lining projected instead", cut))
+                        continue
                 else:
                     cut = term.admissible_fraction(carried, end)
-                    if cut < 1.0 and term is self.lips:
-                        projected = self._checked_projection(
-                            "lips moved out of each other", carried, end,
-                            self.lips.projected_end(carried, end, PROJECTION_LIMIT))
-                        # Its straight path may still come too close (edges, nodes sliding over
-                        # the other lip's facets): it serves where it is cut less.
-                        kept = term.admissible_fraction(carried, projected) if projected is not None else 0.0
-                        projected, cut = (projected, kept) if kept > cut else (None, cut)
-                if projected is not None:
-                    guess = carried + (projected - carried) / fraction
-                    label += ", projected"
                 fraction *= cut
                 cuts.append((label, cut))
             if fraction < 1.0:
@@ -602,20 +592,15 @@ class FaceProblem:
         the whole face's prediction short for those few nodes, and Newton took the cut prediction
         after solves that push the lining out of the teeth moved to their poses."""
         projected = self.teeth_contact.projected_end(equilibrium, end, poses, PROJECTION_LIMIT)
-        if projected is not None and self.lips is not None and self.lips.admissible_fraction(equilibrium, projected) < 1.0:
+        if projected is None:
             return None
-        return self._checked_projection("lining moved out of the teeth", equilibrium, end, projected)
-
-    def _checked_projection(self, what: str, equilibrium: np.ndarray, end: np.ndarray,
-                            projected: np.ndarray | None) -> np.ndarray | None:
-        """A prediction ``end`` with some contact nodes ``projected`` out of what they would enter,
-        or None if there is none or the move from ``equilibrium`` to it would invert a cell."""
-        if projected is None or self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - projected) < 1.0:
+        if self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - projected) < 1.0:
             return None
-        # (Collective on every rank: the ranks may log at different levels.)
+        if self.lips is not None and self.lips.admissible_fraction(equilibrium, projected) < 1.0:
+            return None
         moves = np.linalg.norm((projected - end).reshape(-1, 3), axis=1)
         moved = self.comm.allreduce(int(np.count_nonzero(moves[:self.V.dofmap.index_map.size_local] > 0.0)))
-        log.debug("prediction's %s instead: %d nodes, up to %.3g mm", what, moved,
+        log.debug("prediction's lining moved out of the teeth instead: %d nodes, up to %.3g mm", moved,
                   self.comm.allreduce(float(moves.max(initial=0.0)), op=MPI.MAX))
         return projected
 

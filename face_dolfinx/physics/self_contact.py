@@ -28,10 +28,6 @@ Continuous collision detection (``ipctk.compute_collision_free_stepsize``) bound
 step so that no point of the line-search segment lets two lip primitives come closer than
 (1 - CCD_KEEP) of their smallest distance now: no iterate ever penetrates.
 
-A Gauss-Newton prediction (the equilibrium plus dX/dc times the change of the controls) that
-takes the pressed lips into each other is not cut short for them alone: ``projected_end`` moves
-the lip nodes and edges that it takes too close apart (``FaceProblem.solve``).
-
 Under MPI every rank gathers all lip nodes (a few hundred) and computes the same pairs; each adds
 the gradient and Hessian rows of the nodes it owns (columns anywhere). The energy and the step
 bound are reduced (min) over the ranks so that every rank takes the same step.
@@ -40,7 +36,6 @@ The collision set (broad and narrow phase) is built once per state: the energy, 
 and step bound at the same lip positions (an exact compare with the last ones) share it.
 """
 from dataclasses import dataclass
-import logging
 
 import ipctk
 from mpi4py import MPI
@@ -53,8 +48,6 @@ from dolfinx import fem
 from face_dolfinx.alignment.surface import closest_points
 from face_dolfinx.physics.contact import ContactSurface
 
-log = logging.getLogger(__name__)
-
 # No point of a Newton step's line-search segment may bring two lip primitives closer than
 # (1 - CCD_KEEP) of their smallest distance now (IPC's conservative rescaling).
 CCD_KEEP = 0.8
@@ -63,15 +56,6 @@ CCD_KEEP = 0.8
 # ipctk's default tight-inclusion CCD with a minimum distance on the 5K face's pressed lips, for
 # the same step fractions (benchmarks/lip_ccd.py, docs/contact.md).
 NARROW_PHASE = ipctk.AdditiveCCD()
-
-# A Gauss-Newton prediction's lip node that ends closer to the other lip than this fraction of its
-# gap before the prediction (at most of dhat) is moved out to that gap (``projected_end``).
-PROJECTION_GAP = 0.5
-# ... in at most this many rounds of moves (a move may bring another node or edge too close).
-PROJECTION_ROUNDS = 4
-# A node or edge pair is moved once it lies closer than this fraction of its target gap (one moved to
-# it is not moved again for round-off).
-PROJECTION_SLACK = 0.99
 
 # Newton iterations a solve with lip contact may take before continuation takes over.
 LIP_NEWTON_ITERATIONS = 100
@@ -202,22 +186,6 @@ class LipContact:
                            self.surface.triangles[np.isin(self.surface.triangles, others).all(axis=1)])
                           for nodes, others in ((self.upper_nodes, self.lower_nodes),
                                                 (self.lower_nodes, self.upper_nodes))]
-        # For ``projected_end``: with each lip's nodes, the other lip's triangles ordered so that
-        # their normals point out of its flesh (towards the first lip), and the nodes on that lip's
-        # rim, where the nearest point on it tells no side.
-        self._facing = []
-        for (nodes, triangles), towards in zip(self._opposite, (self.up, -self.up)):
-            corners = self.surface.rest[triangles]
-            flip = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]) @ towards < 0.0
-            triangles = np.where(flip[:, None], triangles[:, [0, 2, 1]], triangles)
-            edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-            unique, counts = np.unique(edges, axis=0, return_counts=True)
-            rim = np.zeros(self.surface.num_nodes, dtype=bool)
-            rim[unique[counts == 1]] = True
-            self._facing.append((nodes, triangles, rim))
-        # Each lip's edges (those of its triangles), upper then lower, for ``_edge_pushes``.
-        self._lip_edges = tuple(np.unique(np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1), axis=0)
-                                for t in (self._facing[1][1], self._facing[0][1]))
         rest_distance = self.min_distance(np.zeros(3 * (space.dofmap.index_map.size_local + index_map.num_ghosts)))
         if not rest_distance > self.dhat:
             raise ValueError(f"{settings.where}: the lips are {rest_distance:.3g} mm apart at rest, not more than "
@@ -396,124 +364,6 @@ class LipContact:
             fraction = float(ipctk.compute_collision_free_stepsize(self.mesh, v0, v1, (1.0 - CCD_KEEP) * distance,
                                                                     narrow_phase_ccd=NARROW_PHASE))
         return self.comm.allreduce(fraction, op=MPI.MIN)
-
-    def projected_end(self, start: np.ndarray, end: np.ndarray, limit: float) -> np.ndarray | None:
-        """``end`` (a displacement that the straight path from ``start`` would take too close,
-        ``admissible_fraction`` < 1) with the lips moved out of each other (local dof array, ghosts
-        included; the same on every rank): each lip node that it leaves inside the other lip, or
-        closer to it than PROJECTION_GAP of its gap at ``start`` (at most of dhat), moved out along
-        the normal of the other lip's nearest triangle to that gap, and each crossing of an upper
-        and a lower lip edge undone by moving both edges apart along their common normal, in
-        rounds until none is left. None if none is found (the bound is met elsewhere), some are
-        left after PROJECTION_ROUNDS, or a node would move farther than ``limit`` (mm).
-
-        Why: a linear prediction moves a pressed lip node by what the barrier's curvature at its
-        gap allows, while the gap falls like 1 / pressure: where the pressure rises more than the
-        gap, the prediction crosses the other lip by some gaps, micrometres, and the lips' bound
-        cut the whole face's prediction short for them."""
-        x0, x = self.positions(start), self.positions(end)
-        predicted = x.copy()
-        gap = np.full(self.surface.num_nodes, self.dhat)
-        for nodes, triangles, _ in self._facing:
-            gap[nodes] = np.minimum(_nearest_on(x0[nodes], x0, triangles)[2], self.dhat)
-        target = PROJECTION_GAP * gap
-        for _ in range(PROJECTION_ROUNDS):
-            nodes = self._vertex_pushes(x, target)
-            x += nodes
-            edges = self._edge_pushes(x0, x, target)
-            x += edges
-            if not (nodes.any() or edges.any()):
-                break
-        else:
-            log.debug("lips' projection refused: still crossing after %d rounds", PROJECTION_ROUNDS)
-            return None
-        moves = np.linalg.norm(x - predicted, axis=1)
-        if moves.max(initial=0.0) > limit:
-            log.debug("lips' projection refused: a node would move %.3g mm", moves.max())
-            return None
-        moved = np.flatnonzero(moves > 0.0)
-        if not moved.size:
-            log.debug("lips' projection refused: no node ends that close")
-            return None
-        return self.surface.placed(end, x, moved)
-
-    def _vertex_pushes(self, x: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """(lip nodes, 3): the moves that take each lip node off the rim of the other lip to
-        ``target`` (per node) outside it along the normal of its nearest triangle, where it is
-        closer or inside."""
-        push = np.zeros_like(x)
-        for nodes, triangles, rim in self._facing:
-            triangle, closest, _, weights = _nearest_on(x[nodes], x, triangles)
-            # A nearest point on the rim's vertices only (a border edge or vertex) tells no side.
-            on_rim = ((weights == 0.0) | rim[triangles[triangle]]).all(axis=1)
-            corners = x[triangles[triangle]]
-            normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-            normal /= np.linalg.norm(normal, axis=1)[:, None]
-            signed = np.einsum("ij,ij->i", x[nodes] - closest, normal)
-            hit = np.flatnonzero((signed < PROJECTION_SLACK * target[nodes]) & ~on_rim)
-            push[nodes[hit]] = (target[nodes[hit]] - signed[hit])[:, None] * normal[hit]
-        return push
-
-    def _edge_pushes(self, x0: np.ndarray, x: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """(lip nodes, 3): for each upper and lower lip edge that ``x`` has passed each other (on
-        the other side of each other along their common normal than at ``x0``), or brought
-        closer than ``target`` (the least of their nodes'), between their ends, the moves of both
-        edges' nodes apart along that normal, half each (a node in several such pairs takes the
-        largest move)."""
-        upper, lower = self._lip_edges
-        a0, a1, b0, b1 = x[upper[:, 0]], x[upper[:, 1]], x[lower[:, 0]], x[lower[:, 1]]
-        reach = max(np.linalg.norm(a1 - a0, axis=1).max(initial=0.0), np.linalg.norm(b1 - b0, axis=1).max(initial=0.0))
-        pairs = scipy.spatial.cKDTree(0.5 * (a0 + a1)).query_ball_tree(scipy.spatial.cKDTree(0.5 * (b0 + b1)), reach)
-        i = np.repeat(np.arange(len(upper)), [len(p) for p in pairs])
-        j = np.fromiter((k for p in pairs for k in p), dtype=np.int64, count=len(i))
-        keep = ~(upper[i][:, :, None] == lower[j][:, None, :]).any(axis=(1, 2))
-        i, j = i[keep], j[keep]
-        u, v, w = a1[i] - a0[i], b1[j] - b0[j], a0[i] - b0[j]
-        uu, uv, vv = (u * u).sum(1), (u * v).sum(1), (v * v).sum(1)
-        uw, vw = (u * w).sum(1), (v * w).sum(1)
-        normal = np.cross(u, v)
-        size = np.linalg.norm(normal, axis=1)
-        crossing = size > 1e-6 * np.sqrt(uu * vv)  # not parallel: the node pass takes those
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (uv * vw - vv * uw) / (uu * vv - uv ** 2)
-            t = (uu * vw - uv * uw) / (uu * vv - uv ** 2)
-            normal = normal / size[:, None]
-        # Oriented from the lower edge to the upper where they were before the prediction.
-        before = ((1.0 - s)[:, None] * x0[upper[i, 0]] + s[:, None] * x0[upper[i, 1]]
-                  - (1.0 - t)[:, None] * x0[lower[j, 0]] - t[:, None] * x0[lower[j, 1]])
-        normal *= np.where(np.einsum("ij,ij->i", before, normal) < 0.0, -1.0, 1.0)[:, None]
-        separation = np.einsum("ij,ij->i", w + s[:, None] * u - t[:, None] * v, normal)
-        wanted = target[np.concatenate([upper[i], lower[j]], axis=1)].min(axis=1)
-        hit = np.flatnonzero(crossing & (s > 0.0) & (s < 1.0) & (t > 0.0) & (t < 1.0)
-                             & (separation < PROJECTION_SLACK * wanted))
-        push = np.zeros_like(x)
-        if not hit.size:
-            return push
-        half = (0.5 * (wanted - separation)[hit])[:, None] * normal[hit]
-        nodes = np.concatenate([upper[i[hit]].reshape(-1), lower[j[hit]].reshape(-1)])
-        moves = np.concatenate([np.repeat(half, 2, axis=0), -np.repeat(half, 2, axis=0)])
-        lengths = np.linalg.norm(moves, axis=1)
-        largest = np.zeros(len(x))
-        np.maximum.at(largest, nodes, lengths)
-        chosen = lengths >= largest[nodes]
-        push[nodes[chosen]] = moves[chosen]
-        return push
-
-
-def _nearest_on(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, candidates: int = 8):
-    """For each of ``points`` (P, 3) its nearest triangle of ``triangles`` (vertex indices into
-    ``vertices``) among the ``candidates`` with the nearest centroids: the triangle's index, the
-    nearest point, its distance and its barycentric coordinates (``closest_points``)."""
-    candidates = min(candidates, len(triangles))
-    near = scipy.spatial.cKDTree(vertices[triangles].mean(axis=1)).query(points, candidates)[1]
-    near = near.reshape(len(points), candidates)
-    a, b, c = (vertices[triangles[near, i]].reshape(-1, 3) for i in range(3))
-    repeated = np.repeat(points, candidates, axis=0)
-    closest, weights, _ = closest_points(repeated, a, b, c)
-    distance = np.linalg.norm(repeated - closest, axis=1).reshape(-1, candidates)
-    rows, best = np.arange(len(points)), distance.argmin(axis=1)
-    return (near[rows, best], closest.reshape(-1, candidates, 3)[rows, best], distance[rows, best],
-            weights.reshape(-1, candidates, 3)[rows, best])
 
 
 class LipIterates:
