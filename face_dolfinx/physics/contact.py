@@ -362,10 +362,12 @@ class ContactSurface:
         return self.owned_blocks[np.any(forces[self.owned_nodes] != 0.0, axis=1)]
 
     def local_blocks_of(self, chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The local dof blocks on this rank (owned, or ghosts of its facets) of the surface nodes
-        flagged in ``chosen`` (num_nodes,), and those nodes' surface indices."""
-        blocks = np.concatenate([self.owned_blocks, self.local_blocks])
-        nodes = np.concatenate([self.owned_nodes, self.local_nodes])
+        """The local dof blocks on this rank (owned, or ghosts of its facets; each once) of the
+        surface nodes flagged in ``chosen`` (num_nodes,), and those nodes' surface indices. (A node
+        may be owned by a rank that holds none of its facets: ``local_blocks`` alone misses it
+        there.)"""
+        blocks, first = np.unique(np.concatenate([self.owned_blocks, self.local_blocks]), return_index=True)
+        nodes = np.concatenate([self.owned_nodes, self.local_nodes])[first]
         keep = chosen[nodes]
         return blocks[keep], nodes[keep]
 
@@ -766,11 +768,8 @@ class ContactPotential:
         if not held.any():
             return 0
         values = fem.Function(u.function_space)
-        values.x.array[:] = u.x.array
-        local = held[self.surface.local_nodes]
-        values.x.array.reshape(-1, 3)[self.surface.local_blocks[local]] = \
-            (target - self.surface.rest)[self.surface.local_nodes[local]]
-        condition = fem.dirichletbc(values, self.surface.local_blocks[local])
+        values.x.array[:] = self.surface.placed(u.x.array, target, np.flatnonzero(held))
+        condition = fem.dirichletbc(values, self.surface.local_blocks_of(held)[0])
         solver.bcs.append(condition)
         ignored = self.ignored
         self.ignored = ignored | held
@@ -798,7 +797,9 @@ class ContactPotential:
             return 0
         values = fem.Function(u.function_space)
         values.x.array[:] = u.x.array
-        held = fem.dirichletbc(values, self.surface.local_blocks[np.isin(self.surface.local_nodes, nodes)])
+        chosen = np.zeros(self.surface.num_nodes, dtype=bool)
+        chosen[nodes] = True
+        held = fem.dirichletbc(values, self.surface.local_blocks_of(chosen)[0])
         solver.bcs.append(held)
         try:
             return solver.newton()[1]
