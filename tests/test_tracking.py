@@ -55,7 +55,7 @@ def test_default_preset_is_the_library_default_and_fast_differs_where_documented
                        "newton_tolerance", "newton_energy_tolerance", "refresh_contraction",
                        "line_search_iterations"}
     assert fast.problem_options() == dict(reuse_factorization=True, refresh_contraction=0.5,
-                                          newton_tolerance=1e-2, newton_energy_tolerance=10.0,
+                                          newton_tolerance=1e-2, newton_energy_tolerance=100.0,
                                           line_search_iterations=3, krylov_on_old_factor=False,
                                           intraoral_pressure=False, lip_contact=None, contact=None,
                                           contact_relaxation=False)

@@ -1075,7 +1075,7 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "(docs/contact.md, \"Lip self-contact\")")
     p.add_argument("--newton-energy-tolerance", type=float, metavar="MJ",
                    help="with --contact or --object: Newton also stops once a correction would release less "
-                        "energy than this (mN mm; fit --fast takes 10): pressed lips slide along each other in "
+                        "energy than this (mN mm; fit --fast takes 100): pressed lips slide along each other in "
                         "corrections of a millimetre that release micro-joules")
     p.add_argument("expressions", nargs="*", help="expression names defined in the model")
 
