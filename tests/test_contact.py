@@ -1,9 +1,12 @@
 """Contact with rigid kinematic objects (face_dolfinx.physics.contact): the barrier against the IPC
 Toolkit's, its gradient and Hessian against finite differences of its energy, a sphere pressed into
 the slab and into the small face (no node inside the sphere at any Newton iterate, equilibrium,
-force balance), the sensitivities with active contact against central differences, the same
-result on 1 and 2 ranks, and bad input.
+force balance), Newton's energy stop (within its tolerance of the equilibrium, never with the
+bones short of their values), the sensitivities with active contact against central differences,
+the same result on 1 and 2 ranks, and bad input.
 """
+from dataclasses import replace
+
 from mpi4py import MPI
 from petsc4py import PETSc
 import numpy as np
@@ -175,7 +178,6 @@ def test_newton_stops_on_energy_only_once_the_bones_hold_their_values():
     """The jaw end of the slab pressed by the sphere lifted 1 mm: the sphere's collision-free bound
     shortens Newton's first step, which leaves the bone nodes short of their values. A Newton whose
     energy tolerance every correction meets still goes on until they are there, and converges."""
-    from dataclasses import replace
     problem = pressed_slab(newton_energy_tolerance=1e6)
     solver = problem.solver
     lifted = AffineMap(np.eye(3), np.array([0.0, 0.0, 1.0]))

@@ -731,7 +731,7 @@ class QuasistaticSolver:
                          and abs(self._released) < self.energy_tolerance)
         # A step that a bound shortened leaves the bones short of their values by that much: the
         # small-step and energy tests stop Newton only once they are there (stopped short, the
-        # solve counted as failed and restarted from the last equilibrium: docs/contact.md).
+        # solve would count as failed and start again from the last equilibrium: docs/contact.md).
         if (small_step or small_release) and self.bc_error(snes.getSolution()) <= DIRICHLET_TOLERANCE:
             self.energy_stops += int(not small_step)
             return reasons.CONVERGED_SNORM_RELATIVE
