@@ -10,6 +10,7 @@ import pytest
 
 from face_dolfinx.equilibrium.solver import FactorReusePolicy, PetscOptionsPrefix, QuasistaticSolver
 from face_dolfinx.physics.problem import FaceProblem
+from face_dolfinx.sensitivities.columns import EquilibriumSensitivity
 from slab import slab_model
 
 
@@ -157,6 +158,36 @@ def test_the_tangent_structure_is_explicit():
     assert problem.solver.tangent.isSymmetricKnown() == (True, True)
     with pytest.raises(ValueError, match="tangent = 'cholesky'"):
         QuasistaticSolver(problem.solver.residual_form, problem.u, problem.bcs, tangent="cholesky")
+
+
+def test_a_factorisation_that_meets_a_zero_pivot_is_made_again_with_pivoting():
+    """The tangent for the sensitivities with an exact zero pivot: a bone node's x and y rows
+    (decoupled identity rows) turned into [[0, 1], [1, 0]], which the factorisation without
+    pivoting cannot take and the one with pivoting can. The factor is made again with pivoting and
+    gives the columns of the untouched tangent (the sensitivities' right-hand sides vanish on the
+    bone dofs; a solve on the failed factor raises MUMPS's error -3)."""
+    problem = FaceProblem(slab_model())
+    problem.solve(activations={"across": 0.5})
+    solver, sensitivity = problem.solver, EquilibriumSensitivity(problem)
+    sensitivity.factor()
+    expected = sensitivity.activation_columns()
+    start = problem.V.dofmap.index_map.local_range[0]
+    owned = problem.bone_blocks[problem.bone_blocks < problem.V.dofmap.index_map.size_local]
+    assemble = solver.assemble_tangent
+
+    def with_a_zero_pivot(A):
+        assemble(A)
+        if len(owned):
+            rows = 3 * (start + owned[0]) + np.arange(2, dtype=PETSc.IntType)
+            A.setValues(rows, rows, [[0.0, 1.0], [1.0, 0.0]], addv=PETSc.InsertMode.INSERT_VALUES)
+        A.assemble()
+
+    assert MPI.COMM_WORLD.allreduce(len(owned), op=MPI.SUM) > 0
+    solver.assemble_tangent = with_a_zero_pivot
+    solver.controls_changed()  # the factor is made again
+    assert sensitivity.factor() == 0.0
+    assert np.abs(sensitivity.activation_columns() - expected).max() <= 1e-8 * np.abs(expected).max()
+    assert solver.pivoting
 
 
 def test_a_factor_is_not_reused_under_other_dirichlet_conditions():

@@ -813,11 +813,26 @@ class QuasistaticSolver:
             a is b for a, b in zip(self._factor_conditions, self.bcs))
 
     def _factor(self, A: PETSc.Mat) -> None:
+        """Factorise ``A`` for solves outside Newton. An "spd" tangent that meets a zero pivot
+        without pivoting (the exact tangent with the lips' curvature, at a state Newton left well
+        short of equilibrium: 404K tracking, docs/performance.md) is factorised again with
+        pivoting, as Newton's own solves are (a solve on a failed factor is MUMPS's error -3)."""
         self._factor_conditions = tuple(self.bcs)
         ksp = self.snes.getKSP()
-        ksp.setOperators(A, A)
-        ksp.setUp()
-        ksp.getPC().setUp()
+        for attempt in range(2):
+            ksp.setOperators(A, A)
+            ksp.setUp()
+            ksp.getPC().setUp()
+            if ksp.getConvergedReason() >= 0:
+                break
+            self.factorizations += 1
+            if attempt or self.tangent_structure != "spd" or self._pivoting:
+                self.reuse_policy.forget_factor()
+                raise EquilibriumError(f"the tangent's factorisation failed (KSP reason {ksp.getConvergedReason()})")
+            if self.comm.rank == 0:
+                log.warning("the tangent's factorisation failed (zero pivot without pivoting): factorising "
+                            "it again with pivoting")
+            self._set_pivoting(True)
         self.factorizations += 1
         self.reuse_policy.factorised(in_newton=False)
         self._factor_controls_current, self.factor_is_exact = True, True
