@@ -819,21 +819,20 @@ class QuasistaticSolver:
         pivoting, as Newton's own solves are (a solve on a failed factor is MUMPS's error -3)."""
         self._factor_conditions = tuple(self.bcs)
         ksp = self.snes.getKSP()
-        for attempt in range(2):
+
+        def factorised() -> bool:  # PETSc reports a failed factorisation as the KSP's reason only
             ksp.setOperators(A, A)
             ksp.setUp()
             ksp.getPC().setUp()
-            if ksp.getConvergedReason() >= 0:
-                break
             self.factorizations += 1
-            if attempt or self.tangent_structure != "spd" or self._pivoting:
-                self.reuse_policy.forget_factor()
-                raise EquilibriumError(f"the tangent's factorisation failed (KSP reason {ksp.getConvergedReason()})")
-            if self.comm.rank == 0:
-                log.warning("the tangent's factorisation failed (zero pivot without pivoting): factorising "
-                            "it again with pivoting")
-            self._set_pivoting(True)
-        self.factorizations += 1
+            return ksp.getConvergedReason() >= 0
+
+        if not factorised() and self.tangent_structure == "spd" and not self._pivoting:
+            self._factorise_with_pivoting("the factorisation")
+            factorised()
+        if ksp.getConvergedReason() < 0:
+            self.reuse_policy.forget_factor()
+            raise EquilibriumError(f"the tangent's factorisation failed (KSP reason {ksp.getConvergedReason()})")
         self.reuse_policy.factorised(in_newton=False)
         self._factor_controls_current, self.factor_is_exact = True, True
         # The sensitivities' tangent is exact: Newton may keep it (reuse across solves).
@@ -920,16 +919,16 @@ class QuasistaticSolver:
         self.linear_iterations += self.snes.getLinearSolveIterations()
         return self.snes.getConvergedReason()
 
-    def _factorise_with_pivoting(self) -> None:
+    def _factorise_with_pivoting(self, retried: str = "the Newton solve") -> None:
         """After a failed factorisation (a zero pivot of a tangent factorised without pivoting,
         seen mid-Newton in jaw openings from rest at 404K tets): MUMPS keeps its error, and
         PETSc then skips every later numerical factorisation of the same analysis, so the
         preconditioner is reset (a new analysis) and the tangent is factorised as symmetric
-        indefinite, with pivoting, for the rest of this solve. The next solve goes back to the
-        cheaper factorisation (4.4-5.0 s against 5.5 s at 404K)."""
+        indefinite, with pivoting, for the rest of this solve (``retried``, named in the log).
+        The next solve goes back to the cheaper factorisation (4.4-5.0 s against 5.5 s at 404K)."""
         if self.comm.rank == 0:
-            log.warning("the tangent's factorisation failed (zero pivot without pivoting): retrying the "
-                        "Newton solve with pivoting")
+            log.warning("the tangent's factorisation failed (zero pivot without pivoting): retrying %s "
+                        "with pivoting", retried)
         self._set_pivoting(True)
 
     def _set_pivoting(self, pivoting: bool) -> None:

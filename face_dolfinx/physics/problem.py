@@ -598,6 +598,7 @@ class FaceProblem:
             return None
         if self.lips is not None and self.lips.admissible_fraction(equilibrium, projected) < 1.0:
             return None
+        # (Collective on every rank: the ranks may log at different levels.)
         moves = np.linalg.norm((projected - end).reshape(-1, 3), axis=1)
         moved = self.comm.allreduce(int(np.count_nonzero(moves[:self.V.dofmap.index_map.size_local] > 0.0)))
         log.debug("prediction's lining moved out of the teeth instead: %d nodes, up to %.3g mm", moved,
