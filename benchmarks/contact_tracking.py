@@ -55,12 +55,15 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # poses instead of moving with their bones (``ContactPotential.relative_fraction``), and a prediction
 # that takes lining nodes into the teeth cut short instead of those nodes moved out of the teeth
 # (``ContactPotential.projected_end``), and a prediction cut short with the head's rigid motion in
-# it instead of from the equilibrium carried with the head (``FaceProblem.carry_head``).
+# it instead of from the equilibrium carried with the head (``FaceProblem.carry_head``), and the
+# factor refreshed by the residual norm's contraction alone, not kept where the residual's energy norm
+# contracts (``QuasistaticSolver.judge_factor_by_energy`` off).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
-             "cut-lining", "cut-head")
+             "cut-lining", "cut-head", "residual-refresh")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
-            "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head")
+            "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
+            "contact+residual-refresh")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
@@ -143,6 +146,7 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
     contact = base != "no-contact"
     settings = PRESETS["fast"].updated(dict(contact=contact, krylov=base == "contact-krylov" or None,
                                             newton_energy_tolerance=args.newton_energy_tolerance,
+                                            refresh_contraction=args.refresh_contraction if contact else None,
                                             contact_relaxation=True if "relaxation" in ablations else None))
     tracker = Tracker(model, settings)
     problem = tracker.problem
@@ -158,6 +162,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.carry_head = False
     if "cut-lining" in ablations:
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
+    if "residual-refresh" in ablations:
+        problem.solver.judge_factor_by_energy = False
     if "step-stop-only" in ablations:
         problem.solver.energy_tolerance = None
     if "contraction-refresh" in ablations:
@@ -300,10 +306,14 @@ def main():
                              "the truth's own solves would take longer than the tracking")
     parser.add_argument("--newton-energy-tolerance", type=float, metavar="MJ",
                         help="fit --newton-energy-tolerance of the contact variants (mN mm; default: the preset's)")
+    parser.add_argument("--refresh-contraction", type=float, metavar="RATIO",
+                        help="fit --refresh-contraction of the contact variants (default: the preset's)")
     parser.add_argument("--out", default="runs/contact_tracking", help="folder for the variants' fit folders")
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="log every Newton solve, Gauss-Newton step and pulled-back prediction to standard "
                              "error (rank 0)")
+    parser.add_argument("--trace-newton", action="store_true",
+                        help="with -v, also every Newton iteration: residual, correction, bound, factor fresh or old")
     args = parser.parse_args()
     if not 0 <= args.start < args.start + args.frames <= args.take_frames:
         raise SystemExit(f"--start {args.start} + --frames {args.frames} must lie within --take-frames "
@@ -322,6 +332,8 @@ def main():
     if args.verbose and comm.rank == 0:
         logging.basicConfig(format="%(asctime)s %(name)s: %(message)s", force=True)
         logging.getLogger("face_dolfinx").setLevel(logging.DEBUG)
+        if args.trace_newton:
+            logging.getLogger("face_dolfinx.equilibrium.solver.iterations").setLevel(logging.DEBUG)
     began = time.perf_counter()
     model = load_model(build_builtin_face(args.tets, comm=comm), comm)
     truth_model = (model if args.truth_tets in (None, args.tets)

@@ -68,6 +68,10 @@ from dolfinx.fem.assemble import pack_coefficients
 from face_dolfinx.equilibrium.relaxation import ContactRelaxation
 
 log = logging.getLogger(__name__)
+# Every Newton iteration, for diagnosing slow solves: not part of -v (a 404K tracked frame makes tens of
+# lines); switched on by setting this logger to DEBUG (benchmarks/contact_tracking.py --trace-newton).
+trace = logging.getLogger(__name__ + ".iterations")
+trace.setLevel(logging.INFO)
 
 # MUMPS Cholesky (LDL^T for indefinite tangents): at 212K dofs one factorisation served dozens of
 # right-hand sides far faster than CG + BoomerAMG did. METIS ordering (icntl 7 = 5) was fastest.
@@ -326,6 +330,14 @@ class FactorReusePolicy:
     more per iteration over the last two. Either way a step that the inversion guard had to cut
     refreshes the factor (it says the factor is stale, not that Newton stalls).
 
+    With energy terms the solver also gives ``keep_factor`` the old factor's correction at the
+    current iterate as the energy it would release (``old_factor_release``): where the residual
+    norm fell too slowly, the factor is still kept if that energy norm of the residual (R . K0^-1 R)
+    fell by the same ratio since the last correction of the same factor, or if that correction
+    releases less than Newton's ``energy_tolerance`` (the solve stops after it). The pressed lips'
+    barrier rows hold most of the residual's norm but, being stiff, little of its energy; a fresh
+    tangent does not settle them faster (docs/performance.md, "Judged by energy").
+
     The solver reports each residual norm (``record_residual``), each Newton correction
     (``record_correction``) and each factorisation (``factorised``), and asks ``keep_factor``.
     """
@@ -344,6 +356,7 @@ class FactorReusePolicy:
         self.step_bound = 1.0            # fraction of the last correction the energy terms allowed
         self.correction_size = math.inf  # mm, largest dof change of the last correction
         self.contraction = 0.0           # residual norm ratio of the last iteration
+        self.release = math.inf          # R . du of the last correction (mN mm)
         self.two_step_contraction = math.inf  # geometric mean of the last two ratios
         self._last_norm = math.inf
 
@@ -361,16 +374,22 @@ class FactorReusePolicy:
             self.contraction = norm / max(self._last_norm, 1e-300)
         self._last_norm = norm
 
-    def record_correction(self, size: float, cut: bool = False, bound: float = 1.0) -> None:
+    def record_correction(self, size: float, cut: bool = False, bound: float = 1.0,
+                          release: float = math.inf) -> None:
         """The last Newton correction moved a dof by at most ``size``; ``cut``: the inversion
         guard shortened it; ``bound``: the energy terms' collision-free bound let it go this
-        fraction of the way."""
+        fraction of the way; ``release``: R . du, the energy norm of the residual it came from."""
         self.correction_size, self.step_was_cut, self.step_bound = size, cut, bound
+        self.release = release
 
-    def keep_factor(self, iteration: int, linear_iterations: int | None = None) -> bool:
+    def keep_factor(self, iteration: int, linear_iterations: int | None = None,
+                    old_factor_release: Callable[[], float] | None = None, release_tolerance: float = 0.0) -> bool:
         """Whether iteration ``iteration`` keeps the factor. ``linear_iterations``: the Krylov
         iterations of the last linear solve when corrections are solved by Krylov preconditioned
-        by the factor (None: by the factor alone)."""
+        by the factor (None: by the factor alone). ``old_factor_release``: R . K0^-1 R at the
+        current iterate (a solve with the old factor), asked for only where the residual norm
+        alone would refresh it; ``release_tolerance``: a correction releasing less (R . du / 2)
+        ends the solve."""
         if linear_iterations is not None:
             contracting = (iteration > 0 and linear_iterations <= self.krylov_refresh_iterations
                            and self.two_step_contraction <= KRYLOV_STALL_CONTRACTION)
@@ -378,6 +397,11 @@ class FactorReusePolicy:
             # A step shortened to t of the correction cuts the residual of a quadratic model by t.
             expected = 1.0 - self.step_bound * (1.0 - self.refresh_contraction)
             contracting = iteration > 0 and self.contraction <= expected
+            if (not contracting and old_factor_release is not None and self.across_solves and iteration > 0
+                    and self.has_factor and not self.fresh_factor and not self.step_was_cut):
+                release = old_factor_release()  # the energy norm, squared, both by the same factor
+                contracting = 0.0 < release and (release <= expected**2 * self.release
+                                                 or 0.5 * release < release_tolerance)
         if self.across_solves:
             keep = iteration == 0 or contracting or (linear_iterations is None and self.fresh_factor)
         else:
@@ -504,6 +528,9 @@ class QuasistaticSolver:
         self.refused_exact_tangents = 0  # tangents with exact terms whose correction climbed the energy
         # Whether such corrections are refused (``_refuse_exact_terms``); False only to measure it.
         self.refuse_ascent = True
+        # Whether the reuse policy may keep a factor by the energy norm of the residual (with energy
+        # terms, ``FactorReusePolicy.keep_factor``); False only to measure it.
+        self.judge_factor_by_energy = True
         self.comm = unknown.function_space.mesh.comm
         self.residual_form = compile_form(residual)
         jacobian = jacobian if jacobian is not None else ufl.derivative(residual, unknown)
@@ -531,6 +558,7 @@ class QuasistaticSolver:
         self._start = unknown.vector.duplicate()  # where the current Newton solve began
         self._factor_state = unknown.vector.duplicate()  # the unknown whose tangent was factorised
         self._distance_work = unknown.vector.duplicate()
+        self._trial_correction = unknown.vector.duplicate()  # the old factor's, judged by its energy
         self._prescribed = None  # work vector of bc_error
 
         self.snes = PETSc.SNES().create(self.comm)
@@ -613,7 +641,7 @@ class QuasistaticSolver:
         iteration limit."""
         if self.refuse_ascent and self._factor_has_exact_terms and not self._descends(step):
             self._refuse_exact_terms(x, step)
-        if self.energy_tolerance is not None:
+        if self.energy_terms:
             self._released = 0.5 * self.snes.getFunction()[0].dot(step)
         relaxed = self.relaxation is not None
         if relaxed:
@@ -630,7 +658,7 @@ class QuasistaticSolver:
         # Newton stalls: the next iteration refactorises instead.
         # (The bound is of the line search's longest step, GUARDED_MAX_LAMBDA corrections.)
         self.reuse_policy.record_correction(correction_size, cut=fraction < 1.0,
-                                            bound=min(1.0, GUARDED_MAX_LAMBDA * bound))
+                                            bound=min(1.0, GUARDED_MAX_LAMBDA * bound), release=2.0 * self._released)
         fraction = min(fraction, bound)
         if fraction < 1.0:
             step.scale(fraction)
@@ -713,6 +741,15 @@ class QuasistaticSolver:
         policy.record_residual(iteration, fnorm)
         if iteration == 0:
             self._guard_cuts, self._initial_fnorm, self._released = 0, fnorm, math.inf
+        if self.comm.rank == 0 and trace.isEnabledFor(logging.DEBUG):
+            if iteration == 0:
+                trace.debug("Newton 0: residual %.4g mN", fnorm)
+            else:  # what the correction of the iteration before did
+                trace.debug("Newton %d: residual %.4g mN (x %.3g) after a correction from %s factor (%d made so "
+                            "far): %.3g mm, %.3g taken (2-norm), bound %.3g%s, releasing %.3g mN mm", iteration,
+                            fnorm, policy.contraction, "a fresh" if policy.fresh_factor else "an old",
+                            self.factorizations, policy.correction_size, step_norm, policy.step_bound,
+                            ", guard cut" if policy.step_was_cut else "", self._released)
         if not np.isfinite(fnorm):
             return reasons.DIVERGED_FNORM_NAN
         if fnorm < atol:
@@ -764,9 +801,22 @@ class QuasistaticSolver:
             # flesh's, not the identity: its corrections would move the held node; and of a node
             # released since they would hold it still.
             self.reuse_policy.forget_factor()
-        if self.reuse_policy.keep_factor(snes.getIterationNumber(), linear_iterations):
+        if self.reuse_policy.keep_factor(snes.getIterationNumber(), linear_iterations,
+                                         (self._old_factor_release if self.energy_terms and self.judge_factor_by_energy
+                                          else None),
+                                         self.energy_tolerance or 0.0):
             return  # P is untouched, so the PC keeps its factor: a modified Newton iteration
         self._assemble_newton_tangent(x, P)
+
+    def _old_factor_release(self) -> float:
+        """R . K0^-1 R at the current iterate, K0 the factor Newton has (one solve; the kept
+        factor's correction is solved again by SNES)."""
+        ksp = self.snes.getKSP()
+        residual = self.snes.getFunction()[0]
+        ksp.solve(residual, self._trial_correction)
+        self.linear_iterations += 1
+        release = residual.dot(self._trial_correction)
+        return release if ksp.getConvergedReason() >= 0 and np.isfinite(release) else math.inf
 
     def _assemble_newton_tangent(self, x: PETSc.Vec, P: PETSc.Mat, exact_terms: bool = True) -> None:
         """Assemble Newton's tangent at the unknown (which is ``x``) into ``P``; the PC sees a
