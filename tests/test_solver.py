@@ -96,6 +96,48 @@ def test_reuse_across_solves_keeps_a_fresh_factor_for_one_more_iteration():
     assert newton(policy, steps) == [False, True, False, True, False, False]
 
 
+def test_with_energy_terms_a_slow_residual_cut_keeps_a_factor_whose_energy_norm_contracts():
+    """Pressed lips hold most of the residual's norm and little of its energy: where the residual
+    norm fell too slowly after a correction from the old factor, that factor is kept if the energy
+    norm of the residual by it, R . K0^-1 R (a solve, asked for only then), fell by the expected
+    ratio squared since its last correction, or if its correction would release less than the
+    energy tolerance (the solve stops after it); a negative one (no descent) refreshes it."""
+    policy = FactorReusePolicy(across_solves=True, refresh_contraction=0.25)
+    asked = []
+    policy.start_solve()
+
+    def iteration(k, norm, release_by_old_factor, release_tolerance=0.0):
+        """Newton iteration k at residual ``norm``: whether it kept the factor."""
+        policy.record_residual(k, norm)
+
+        def old_factor_release():
+            asked.append(k)
+            return release_by_old_factor
+        keep = policy.keep_factor(k, None, old_factor_release, release_tolerance)
+        if not keep:
+            policy.factorised(in_newton=True)
+        return keep
+
+    kept = [iteration(0, 1e4, None)]  # no factor yet
+    policy.record_correction(1.0, release=1000.0)
+    kept.append(iteration(1, 8e3, None))  # a fresh factor serves one more iteration whatever its cut
+    policy.record_correction(1.0, release=400.0)
+    kept.append(iteration(2, 7e3, 20.0))  # residual x0.875, energy norm x0.22 (20 <= 0.25^2 400): kept
+    policy.record_correction(1.0, release=20.0)
+    kept.append(iteration(3, 6.5e3, 10.0, release_tolerance=6.0))  # x0.71 in energy, but releases 5 < 6
+    policy.record_correction(1.0, release=10.0)
+    kept.append(iteration(4, 6e3, 8.0))  # x0.89 in energy: refreshed
+    policy.record_correction(1.0, release=8.0)
+    kept.append(iteration(5, 1e3, 1e3))  # the residual cut 6-fold: kept without asking
+    policy.record_correction(1.0, release=1.0)
+    kept.append(iteration(6, 9e2, -1e-3))  # an old factor whose correction climbs the energy: refreshed
+    assert kept == [False, True, True, True, False, True, False]
+    assert asked == [2, 3, 4, 6]
+    # Without the old factor's release (no energy terms) the residual norm alone decides.
+    plain = FactorReusePolicy(across_solves=True, refresh_contraction=0.25)
+    assert newton(plain, [(1e4, 1.0, False), (8e3, 1.0, False), (7e3, 1.0, False)]) == [False, True, False]
+
+
 def test_krylov_on_the_old_factor_refreshes_when_a_linear_solve_slows():
     policy = FactorReusePolicy(across_solves=True, krylov_refresh_iterations=8)
     steps = [(1e4, 1.0, False), (9e3, 1.0, False), (8e3, 1.0, False), (7e3, 1.0, False)]
