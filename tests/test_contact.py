@@ -2,8 +2,9 @@
 Toolkit's, its gradient and Hessian against finite differences of its energy, a sphere pressed into
 the slab and into the small face (no node inside the sphere at any Newton iterate, equilibrium,
 force balance), Newton's energy stop (within its tolerance of the equilibrium, never with the
-bones short of their values), the sensitivities with active contact against central differences,
-the same result on 1 and 2 ranks, and bad input.
+bones short of their values), Newton's factor kept by the residual's energy norm, the
+sensitivities with active contact against central differences, the same result on 1 and 2 ranks,
+and bad input.
 """
 from dataclasses import replace
 
@@ -187,6 +188,25 @@ def test_newton_stops_on_energy_only_once_the_bones_hold_their_values():
     assert iterations > 1 and solver.energy_stops > 0
     assert solver.bc_error() == 0.0
     assert problem.contact.min_gap(problem.u.x.array) > 0.0
+
+
+def test_newton_keeps_a_factor_whose_energy_norm_contracts_and_reaches_the_same_equilibrium():
+    """With factorisation reuse and contact, a factor is kept where the residual's energy norm
+    contracts though its norm does not (``FactorReusePolicy.keep_factor``): the sphere pressed into
+    the slab in four moves reaches the same equilibrium with fewer factorisations than when the
+    residual norm alone decides (``judge_factor_by_energy`` off)."""
+    runs = []
+    for judged in (True, False):
+        problem = pressed_slab(depth=0.0, reuse_factorization=True)
+        problem.solver.judge_factor_by_energy = judged
+        before = problem.solver.factorizations
+        for depth in (0.5, 1.0, 1.5, 2.0):
+            assert problem.solve(objects=(sphere_at(depth),)).converged
+        runs.append((problem, problem.solver.factorizations - before))
+    (by_energy, fewer), (by_residual, more) = runs
+    assert fewer < more
+    assert np.abs(by_energy.u.x.array - by_residual.u.x.array).max() < 1e-6
+    assert by_energy.residual_norm() < 1e-6
 
 
 def assert_force_balance(slab) -> np.ndarray:

@@ -34,7 +34,9 @@ problem's ``reuse_factorization``) Newton keeps the last MUMPS factor as its mat
 Newton) for as long as every iteration cuts the residual norm by ``refresh_contraction`` (default
 ``REFRESH_CONTRACTION``) or more, and a fresh factor for one more iteration whatever its cut, across
 solves too: between nearby equilibria (frames of a take)
-an iteration then costs a residual and a solve instead of an assembly and a factorisation.
+an iteration then costs a residual and a solve instead of an assembly and a factorisation. With
+energy terms a cut too slow is judged again by the residual's energy norm, R . K0^-1 R (one solve
+with the old factor K0), which the pressed lips' stiff barrier rows weigh little.
 ``factor_distance()`` says how far the unknown has moved from the state whose tangent the factor
 holds, for callers that can use a nearby tangent (approximate Jacobians).
 
