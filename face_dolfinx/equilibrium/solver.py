@@ -334,9 +334,10 @@ class FactorReusePolicy:
 
     With energy terms the solver also gives ``keep_factor`` the old factor's correction at the
     current iterate as the energy it would release (``old_factor_release``): where the residual
-    norm fell too slowly, the factor is still kept if that energy norm of the residual (R . K0^-1 R)
-    fell by the same ratio since the last correction of the same factor, or if that correction
-    releases less than Newton's ``energy_tolerance`` (the solve stops after it). The pressed lips'
+    norm fell too slowly, the factor is still kept if that energy norm of the residual, squared
+    (R . K0^-1 R), fell by the square of the ratio expected of the residual norm since the last
+    correction of the same factor, or if that correction releases less than Newton's
+    ``energy_tolerance`` (the solve stops after it); never if it climbs the energy. The pressed lips'
     barrier rows hold most of the residual's norm but, being stiff, little of its energy; a fresh
     tangent does not settle them faster (docs/performance.md, "Judged by energy").
 
