@@ -56,9 +56,18 @@ record $RESULTS/contact/tracking_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/c
 # ... with the nodes in contact relaxed after each Newton correction (fit --fast's --contact-relaxation),
 # and without it, at 5K.
 record $RESULTS/contact/tracking_5k_np1_relaxation.jsonl $PYTHON benchmarks/contact_tracking.py --tets 5000 \
-  --frames 5 --variants no-contact contact contact+no-relaxation
+  --frames 5 --variants no-contact contact+relaxation contact
 record $RESULTS/contact/tracking_404k_np2_relaxation_patch_matrix.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
-  --tets 400000 --truth-tets 20000 --frames 4 --variants no-contact contact --max-seconds 2400 --abort-seconds 5400
+  --tets 400000 --truth-tets 20000 --frames 4 --variants no-contact contact+relaxation --max-seconds 2400 \
+  --abort-seconds 5400
+# ... with the head moving: Newton's factor judged by the residual's energy norm (fit --fast) and by its
+# norm alone; how far the energy stop leaves the equilibrium.
+record $RESULTS/contact/energy_judged_ablation_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact contact+residual-refresh \
+  --max-seconds 2400 --abort-seconds 4000
+record $RESULTS/contact/energy_judged_20k_np1.jsonl $PYTHON benchmarks/contact_tracking.py --tets 20000 \
+  --head-motion --start 5 --frames 20 --variants no-contact contact contact+residual-refresh
+$PYTHON benchmarks/energy_stop_accuracy.py --tets 20000 --out $RESULTS/contact/energy_stop_accuracy_20k.json
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
