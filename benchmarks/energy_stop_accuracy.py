@@ -26,22 +26,20 @@ from provenance import record  # noqa: E402
 from face_dolfinx.capture.synthetic import synthesize_take, truth_contact_options  # noqa: E402
 from face_dolfinx.fitting import MarkerSet  # noqa: E402
 from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
-from face_dolfinx.model.bones import jaw_pose  # noqa: E402
 from face_dolfinx.model.folder import load_model  # noqa: E402
 from face_dolfinx.physics.problem import FaceProblem  # noqa: E402
 from face_dolfinx.tracking import PRESETS, Tracker  # noqa: E402
 
 
-def truth_equilibria(model, sites, names, frames, comm):
-    """The take's controls and the truth's equilibrium (controls, displacement) per frame."""
+def truth_equilibria(model, sites, names, frames):
+    """The truth's equilibrium (controls, displacement) per frame, kept as the take solves it."""
     problem = FaceProblem(model, **truth_contact_options(model))
-    _, truth = synthesize_take(problem, MarkerSet(problem, sites, names=names), model, "bilabial", n_frames=60,
-                               noise=0.5, head_motion=True, frames=frames)
     states = {}
-    for i, frame in enumerate(frames):
-        problem.solve(activations=truth.activations[i], cranium=truth.head[i],
-                      jaw=jaw_pose(model.jaw, *truth.tmj[i]))
-        states[frame] = (problem.controls.copy(), problem.u.x.array.copy())
+
+    def keep(index):  # called with the frame's equilibrium in the problem
+        states[frames[index]] = (problem.controls.copy(), problem.u.x.array.copy())
+    synthesize_take(problem, MarkerSet(problem, sites, names=names), model, "bilabial", n_frames=60,
+                    noise=0.5, head_motion=True, frames=frames, progress=keep)
     return states
 
 
@@ -60,7 +58,7 @@ def main():
     names = list(model.markers)
     sites = np.array([model.markers[name] for name in names])
     frames = range(args.start, args.start + args.frames)
-    states = truth_equilibria(model, sites, names, frames, comm)
+    states = truth_equilibria(model, sites, names, frames)
     settings = PRESETS["fast"].updated(dict(contact=True))
     problem = Tracker(model, settings).problem
     markers = MarkerSet(problem, sites, names=names)
