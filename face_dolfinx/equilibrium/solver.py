@@ -37,6 +37,9 @@ solves too: between nearby equilibria (frames of a take)
 an iteration then costs a residual and a solve instead of an assembly and a factorisation. With
 energy terms a cut too slow is judged again by the residual's energy norm, R . K0^-1 R (one solve
 with the old factor K0), which the pressed lips' stiff barrier rows weigh little.
+Where the policy would refresh the factor, ``refresh_by_krylov`` has GMRES solve the correction
+with that fresh tangent, assembled, preconditioned by the old factor (an assembly and a few
+solves instead of a factorisation); only where GMRES falls short does the next refresh factorise.
 ``factor_distance()`` says how far the unknown has moved from the state whose tangent the factor
 holds, for callers that can use a nearby tangent (approximate Jacobians).
 
