@@ -57,18 +57,17 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # (``ContactPotential.projected_end``), and a prediction cut short with the head's rigid motion in
 # it instead of from the equilibrium carried with the head (``FaceProblem.carry_head``), and the
 # factor refreshed by the residual norm's contraction alone, not kept where the residual's energy norm
-# contracts (``QuasistaticSolver.judge_factor_by_energy`` off), and where the factor would be refreshed
-# GMRES on the fresh tangent preconditioned by the old factor (``QuasistaticSolver.refresh_by_krylov``,
-# ``--krylov-refresh`` iterations), and the factor refreshed only after an iteration that cuts the
-# residual less than ``--slow-refresh-contraction`` (against what a step of its bounded length achieves).
+# contracts (``QuasistaticSolver.judge_factor_by_energy`` off), and the factor refreshed only after an
+# iteration that cuts the residual less than ``--slow-refresh-contraction`` (against what a step of its
+# bounded length achieves).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
-             "cut-lining", "cut-head", "residual-refresh", "krylov-refresh", "slow-refresh")
+             "cut-lining", "cut-head", "residual-refresh", "slow-refresh")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
-            "contact+residual-refresh", "contact+krylov-refresh", "contact+slow-refresh")
+            "contact+residual-refresh", "contact+slow-refresh")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
-COUNTERS = ("factorizations", "krylov_refreshes", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
+COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
 
 class TimedTerm:
@@ -167,8 +166,6 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "residual-refresh" in ablations:
         problem.solver.judge_factor_by_energy = False
-    if "krylov-refresh" in ablations:
-        problem.solver.refresh_by_krylov(args.krylov_refresh)
     if "slow-refresh" in ablations:
         problem.solver.reuse_policy.refresh_contraction = args.slow_refresh_contraction
     if "step-stop-only" in ablations:
@@ -315,8 +312,6 @@ def main():
                         help="fit --newton-energy-tolerance of the contact variants (mN mm; default: the preset's)")
     parser.add_argument("--refresh-contraction", type=float, metavar="RATIO",
                         help="fit --refresh-contraction of the contact variants (default: the preset's)")
-    parser.add_argument("--krylov-refresh", type=int, default=8, metavar="ITERATIONS",
-                        help="GMRES iterations of a refresh on the old factor (variant contact+krylov-refresh)")
     parser.add_argument("--slow-refresh-contraction", type=float, default=0.75, metavar="RATIO",
                         help="refresh contraction of the variant contact+slow-refresh")
     parser.add_argument("--out", default="runs/contact_tracking", help="folder for the variants' fit folders")

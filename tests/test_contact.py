@@ -212,38 +212,6 @@ def test_newton_keeps_a_factor_whose_energy_norm_contracts_and_reaches_the_same_
     assert by_energy.residual_norm() < 1e-6
 
 
-def test_a_refresh_by_krylov_on_the_old_factor_saves_factorisations_and_leaves_the_sensitivities_exact():
-    """Where the factor would be refreshed, GMRES on the fresh tangent preconditioned by the old
-    factor solves the correction (``QuasistaticSolver.refresh_by_krylov``): the sphere pressed into
-    the slab in four moves reaches the same equilibrium with fewer factorisations, and the
-    sensitivities afterwards are the factor's own solves (dX/da as without it)."""
-    runs = []
-    for iterations in (8, 0):
-        problem = pressed_slab(depth=0.0, reuse_factorization=True)
-        problem.solver.refresh_by_krylov(iterations)
-        before = problem.solver.factorizations
-        for depth in (0.5, 1.0, 1.5, 2.0):
-            assert problem.solve(objects=(sphere_at(depth),)).converged
-        factorizations = problem.solver.factorizations - before
-        # Solves with the kept factor (approximate Jacobians) are the factor's alone.
-        rhs, by_solve, by_factor = (problem.u.vector.duplicate() for _ in range(3))
-        rhs.setArray(np.random.default_rng(0).normal(size=rhs.getLocalSize()))
-        problem.solver.solve_tangent(rhs, by_solve)
-        problem.solver.snes.getKSP().getPC().apply(rhs, by_factor)
-        assert by_solve.equal(by_factor)
-        sensitivity = EquilibriumSensitivity(problem)
-        sensitivity.factor()
-        columns = PointEvaluator(problem.V, MARKERS).values_many(sensitivity.activation_columns())
-        runs.append((problem, factorizations, columns))
-    (by_krylov, fewer, krylov_columns), (by_factor, more, factor_columns) = runs
-    assert by_krylov.solver.krylov_refreshes > 0 and by_factor.solver.krylov_refreshes == 0
-    assert fewer < more
-    on_sphere = [problem.contact.nodal_forces(problem.u.x.array).sum(axis=0) for problem in (by_krylov, by_factor)]
-    assert np.abs(on_sphere[0] - on_sphere[1]).max() <= 1e-6 * np.abs(on_sphere[1]).max()
-    assert by_krylov.solver.energy() == pytest.approx(by_factor.solver.energy(), rel=1e-9)
-    assert np.abs(krylov_columns - factor_columns).max() <= 1e-6 * np.abs(factor_columns).max()
-
-
 def assert_force_balance(slab) -> np.ndarray:
     """At equilibrium the force the skin puts on the sphere equals the reactions at the bones;
     returns that force (mN)."""

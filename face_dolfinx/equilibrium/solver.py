@@ -37,9 +37,6 @@ solves too: between nearby equilibria (frames of a take)
 an iteration then costs a residual and a solve instead of an assembly and a factorisation. With
 energy terms a cut too slow is judged again by the residual's energy norm, R . K0^-1 R (one solve
 with the old factor K0), which the pressed lips' stiff barrier rows weigh little.
-Where the policy would refresh the factor, ``refresh_by_krylov`` has GMRES solve the correction
-with that fresh tangent, assembled, preconditioned by the old factor (an assembly and a few
-solves instead of a factorisation); only where GMRES falls short does the next refresh factorise.
 ``factor_distance()`` says how far the unknown has moved from the state whose tangent the factor
 holds, for callers that can use a nearby tangent (approximate Jacobians).
 
@@ -115,11 +112,6 @@ KRYLOV_REFRESH_ITERATIONS = 8
 # with lip and teeth contact, Newton kept the factor for 100 iterations (~9 residuals each) at a
 # time and never converged (docs/performance.md, "Contact in tracking").
 KRYLOV_STALL_CONTRACTION = 0.9
-# ``refresh_by_krylov`` (with factorisation reuse): where the reuse policy would factorise the
-# tangent, GMRES on that tangent, assembled, preconditioned by the old factor, solves the correction
-# to this relative tolerance of its preconditioned residual instead; only where it needs more than
-# the given iterations does the next refresh factorise.
-KRYLOV_REFRESH_RTOL = 1e-2
 KRYLOV_OPTIONS = {
     "snes_mf_operator": None,
     "snes_ksp_ew": None,
@@ -570,18 +562,11 @@ class QuasistaticSolver:
         self._factor_state = unknown.vector.duplicate()  # the unknown whose tangent was factorised
         self._distance_work = unknown.vector.duplicate()
         self._trial_correction = unknown.vector.duplicate()  # the old factor's, judged by its energy
-        self._krylov_operator = None  # the fresh tangent GMRES solves with the old factor (refresh_by_krylov)
-        self._krylov_refresh_iterations = 0
-        self._krylov_refresh_under_way = False  # this iteration's correction is solved by GMRES
-        self._krylov_refresh_reached = True  # the last such solve reached KRYLOV_REFRESH_RTOL
-        self._krylov_initial_norm = 0.0
-        self.krylov_refreshes = 0  # refreshes by GMRES on the old factor instead of a factorisation
         self._prescribed = None  # work vector of bc_error
 
         self.snes = PETSc.SNES().create(self.comm)
         self.snes.setOptionsPrefix(options_prefix)
         options = dict(DEFAULT_PETSC_OPTIONS)
-        self._krylov_on_old_factor = krylov_on_old_factor
         if krylov_on_old_factor:
             if not self.reuse_policy.across_solves:
                 raise ValueError("krylov_on_old_factor needs reuse_factorization: without it every "
@@ -731,8 +716,6 @@ class QuasistaticSolver:
         self._set_unknown(x)
         self._assemble_newton_tangent(x, self.tangent, exact_terms=False)
         ksp = self.snes.getKSP()
-        if self._krylov_operator is not None:
-            ksp.setType("preonly")
         ksp.solve(self.snes.getFunction()[0], step)
         self.linear_iterations += max(ksp.getIterationNumber(), 1)
         if ksp.getConvergedReason() < 0:
@@ -765,12 +748,9 @@ class QuasistaticSolver:
             if iteration == 0:
                 trace.debug("Newton 0: residual %.4g mN", fnorm)
             else:  # what the correction of the iteration before did
-                source = "a fresh" if policy.fresh_factor else "an old"
-                if self._krylov_refresh_under_way:
-                    source = f"GMRES ({snes.getKSP().getIterationNumber()} its) on the fresh tangent and an old"
                 trace.debug("Newton %d: residual %.4g mN (x %.3g) after a correction from %s factor (%d made so "
                             "far): %.3g mm, %.3g taken (2-norm), bound %.3g%s, releasing %.3g mN mm", iteration,
-                            fnorm, policy.contraction, source,
+                            fnorm, policy.contraction, "a fresh" if policy.fresh_factor else "an old",
                             self.factorizations, policy.correction_size, step_norm, policy.step_bound,
                             ", guard cut" if policy.step_was_cut else "", self._released)
         if not np.isfinite(fnorm):
@@ -812,42 +792,9 @@ class QuasistaticSolver:
         for term in self.energy_terms:
             term.add_hessian(self.unknown.vector, A, self._constrained_dofs())
 
-    def refresh_by_krylov(self, max_iterations: int) -> None:
-        """Where the reuse policy would factorise Newton's tangent (``reuse_factorization``), solve
-        the correction by up to ``max_iterations`` GMRES iterations on that tangent, assembled,
-        preconditioned by the old factor (0: off); a solve that does not reach
-        KRYLOV_REFRESH_RTOL still gives its best correction, and the next refresh factorises."""
-        if max_iterations and self._krylov_operator is None:
-            if not self.reuse_policy.across_solves or self._krylov_on_old_factor:
-                raise ValueError("refresh_by_krylov needs reuse_factorization without krylov_on_old_factor")
-            self._krylov_operator = self._create_tangent(self.jacobian_form)
-            self._krylov_operator.setOption(PETSc.Mat.Option.SYMMETRIC, self.tangent_structure != "general")
-            self.assemble_tangent(self._krylov_operator)
-            self.snes.setJacobian(self._assemble_tangent, self._krylov_operator, self.tangent)
-            self.snes.getKSP().setConvergenceTest(self._krylov_refresh_test)
-        self._krylov_refresh_iterations = max_iterations
-
-    def _krylov_refresh_test(self, ksp, iteration, norm):
-        reasons = PETSc.KSP.ConvergedReason
-        if not np.isfinite(norm):
-            return reasons.DIVERGED_NANORINF
-        if iteration == 0:
-            self._krylov_initial_norm = norm
-        if norm <= KRYLOV_REFRESH_RTOL * self._krylov_initial_norm:
-            self._krylov_refresh_reached = True
-            return reasons.CONVERGED_RTOL
-        if iteration >= ksp.getTolerances()[3]:
-            self._krylov_refresh_reached = False
-            return reasons.CONVERGED_ITS
-        return reasons.ITERATING
-
     def _assemble_tangent(self, snes, x, A, P):
         linear_iterations = None
-        ksp = snes.getKSP()
-        if self._krylov_operator is not None:
-            ksp.setType("preonly")  # each iteration solves with the factor alone unless it refreshes
-            self._krylov_refresh_under_way = False
-        elif A.handle != P.handle:
+        if A.handle != P.handle:
             # -snes_mf_operator: Krylov on the exact tangent (J v by differencing the residual at
             # x), preconditioned by the factor of P; the factor is refreshed when Krylov slows.
             A.assemble()
@@ -862,13 +809,6 @@ class QuasistaticSolver:
                                           else None),
                                          self.energy_tolerance or 0.0):
             return  # P is untouched, so the PC keeps its factor: a modified Newton iteration
-        if self._krylov_refresh_iterations and self._krylov_refresh_reached and self.reuse_policy.has_factor:
-            self._newton_tangent_into(A)
-            ksp.setType("gmres")
-            ksp.setTolerances(max_it=self._krylov_refresh_iterations)
-            self._krylov_refresh_under_way, self._krylov_refresh_reached = True, True
-            self.krylov_refreshes += 1
-            return  # P keeps its factor, the preconditioner of GMRES on A
         self._assemble_newton_tangent(x, P)
 
     def _old_factor_release(self) -> float:
@@ -885,29 +825,22 @@ class QuasistaticSolver:
         """Assemble Newton's tangent at the unknown (which is ``x``) into ``P``; the PC sees a
         changed matrix and factorises it when the KSP is next set up or solves. ``exact_terms``
         False: every term takes its Newton correction, near the solution too."""
+        self.assemble_tangent(P)
         self._factor_conditions = tuple(self.bcs)
-        exact, self._factor_has_exact_terms = self._newton_tangent_into(P, exact_terms)
-        self.factorizations += 1
-        self.reuse_policy.factorised(in_newton=True)
-        self._factor_controls_current, self.factor_is_exact = True, exact
-        self._krylov_refresh_reached = True
-        x.copy(self._factor_state)
-
-    def _newton_tangent_into(self, A: PETSc.Mat, exact_terms: bool = True) -> tuple[bool, bool]:
-        """Assemble Newton's tangent at the unknown into ``A``: whether it is the exact tangent,
-        and whether it holds a term's exact Hessian (``exact_near_solution``). A term may modify
-        its Hessian for Newton's corrections (add_newton_correction); the factor of that matrix
-        serves Newton, not the sensitivities (factor_distance)."""
-        self.assemble_tangent(A)
-        exact, has_exact_terms = True, False
+        # A term may modify its Hessian for Newton's corrections (add_newton_correction); the
+        # factor of that matrix serves Newton, not the sensitivities (factor_distance).
+        exact, self._factor_has_exact_terms = True, False
         for term in self.energy_terms:
             if not hasattr(term, "add_newton_correction"):
                 continue
             if not exact_terms or self._newton_corrections(term):
-                exact = not term.add_newton_correction(self.unknown.vector, A, self._constrained_dofs()) and exact
+                exact = not term.add_newton_correction(self.unknown.vector, P, self._constrained_dofs()) and exact
             else:
-                has_exact_terms = True
-        return exact, has_exact_terms
+                self._factor_has_exact_terms = True
+        self.factorizations += 1
+        self.reuse_policy.factorised(in_newton=True)
+        self._factor_controls_current, self.factor_is_exact = True, exact
+        x.copy(self._factor_state)
 
     def _newton_corrections(self, term) -> bool:
         """Whether Newton's tangent takes ``term``'s correction: always, or for a term that says
@@ -1036,8 +969,6 @@ class QuasistaticSolver:
     def _solve_from_start(self) -> int:
         self._start.copy(self._solution)
         self.snes.solve(None, self._solution)
-        if self._krylov_operator is not None:
-            self.snes.getKSP().setType("preonly")  # the sensitivities' solves are by the factor
         self.linear_iterations += self.snes.getLinearSolveIterations()
         return self.snes.getConvergedReason()
 
