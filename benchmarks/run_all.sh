@@ -68,6 +68,10 @@ record $RESULTS/contact/energy_judged_ablation_404k_np2.jsonl mpirun -n 2 $PYTHO
 record $RESULTS/contact/energy_judged_20k_np1.jsonl $PYTHON benchmarks/contact_tracking.py --tets 20000 \
   --head-motion --start 5 --frames 20 --variants no-contact contact contact+residual-refresh
 $PYTHON benchmarks/energy_stop_accuracy.py --tets 20000 --out $RESULTS/contact/energy_stop_accuracy_20k.json
+# ... and the factor refreshed only after a cut slower than 0.75 instead of 0.5.
+record $RESULTS/contact/slow_refresh_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact contact+slow-refresh \
+  --max-seconds 2400 --abort-seconds 4000
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
