@@ -59,13 +59,14 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # factor refreshed by the residual norm's contraction alone, not kept where the residual's energy norm
 # contracts (``QuasistaticSolver.judge_factor_by_energy`` off), and the factor refreshed only after an
 # iteration that cuts the residual less than ``--slow-refresh-contraction`` (against what a step of its
-# bounded length achieves).
+# bounded length achieves), and the lips' barrier of ``--stiff-lips`` kPa instead of the
+# ``LipContactSettings`` default (the truth keeps the default).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
-             "cut-lining", "cut-head", "residual-refresh", "slow-refresh")
+             "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
-            "contact+residual-refresh", "contact+slow-refresh")
+            "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips")
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
 
@@ -166,6 +167,11 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "residual-refresh" in ablations:
         problem.solver.judge_factor_by_energy = False
+    if "stiff-lips" in ablations:
+        import ipctk
+        lips = problem.lips
+        lips.stiffness = args.stiff_lips
+        lips.potential = ipctk.BarrierPotential(lips.dhat, lips.stiffness, True)
     if "slow-refresh" in ablations:
         problem.solver.reuse_policy.refresh_contraction = args.slow_refresh_contraction
     if "step-stop-only" in ablations:
@@ -314,6 +320,8 @@ def main():
                         help="fit --refresh-contraction of the contact variants (default: the preset's)")
     parser.add_argument("--slow-refresh-contraction", type=float, default=0.75, metavar="RATIO",
                         help="refresh contraction of the variant contact+slow-refresh")
+    parser.add_argument("--stiff-lips", type=float, default=100.0, metavar="KPA",
+                        help="the lips' barrier stiffness of the variant contact+stiff-lips")
     parser.add_argument("--out", default="runs/contact_tracking", help="folder for the variants' fit folders")
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="log every Newton solve, Gauss-Newton step and pulled-back prediction to standard "
