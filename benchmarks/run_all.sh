@@ -72,6 +72,10 @@ $PYTHON benchmarks/energy_stop_accuracy.py --tets 20000 --out $RESULTS/contact/e
 record $RESULTS/contact/slow_refresh_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact contact+slow-refresh \
   --max-seconds 2400 --abort-seconds 4000
+# ... and the lips' barrier at 100 kPa instead of 10.
+record $RESULTS/contact/stiff_lips_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact contact+stiff-lips \
+  --max-seconds 2400 --abort-seconds 3600
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
