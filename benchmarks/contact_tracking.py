@@ -34,6 +34,7 @@ the whole run stops (summary line with what it has, then MPI abort) after ``--ab
         mpirun -n 2 python benchmarks/contact_tracking.py --tets 400000 --frames 4 --max-seconds 1800
 """
 import argparse
+import contextlib
 import json
 import logging
 import pathlib
@@ -41,6 +42,7 @@ import threading
 import time
 
 from mpi4py import MPI
+from petsc4py import PETSc
 import numpy as np
 
 TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5 times one without
@@ -60,15 +62,36 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # contracts (``QuasistaticSolver.judge_factor_by_energy`` off), and the factor refreshed only after an
 # iteration that cuts the residual less than ``--slow-refresh-contraction`` (against what a step of its
 # bounded length achieves), and the lips' barrier of ``--stiff-lips`` kPa instead of the
-# ``LipContactSettings`` default (the truth keeps the default).
+# ``LipContactSettings`` default (the truth keeps the default), and the tangent's pattern holding every pair
+# of lip nodes within WIDE_PATTERN_RADIUS of each other at rest, of one lip or both, instead of
+# ``LipContact.coupled_blocks``'s.
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
-             "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips")
+             "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
-            "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips")
+            "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern")
+WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
+
+
+@contextlib.contextmanager
+def every_lip_pair_in_pattern(radius: float):
+    """Problems built inside get a tangent whose pattern holds every pair of lip nodes within
+    ``radius`` of each other at rest (``LipContact.coupled_blocks`` replaced meanwhile)."""
+    from face_dolfinx.physics.self_contact import LipContact
+    across = LipContact.coupled_blocks
+
+    def every_pair(lips):
+        rest = lips.surface.rest
+        i, j = np.nonzero(np.linalg.norm(rest[:, None, :] - rest[None, :, :], axis=2) <= radius)
+        return np.column_stack([lips.global_blocks[i], lips.global_blocks[j]])
+    LipContact.coupled_blocks = every_pair
+    try:
+        yield
+    finally:
+        LipContact.coupled_blocks = across
 
 
 class TimedTerm:
@@ -151,8 +174,14 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
                                             newton_energy_tolerance=args.newton_energy_tolerance,
                                             refresh_contraction=args.refresh_contraction if contact else None,
                                             contact_relaxation=True if "relaxation" in ablations else None))
-    tracker = Tracker(model, settings)
-    problem = tracker.problem
+    lip_settings = LipContactSettings(where="--contact",
+                                      stiffness=args.stiff_lips if "stiff-lips" in ablations else LipContactSettings.stiffness)
+    tracker = Tracker(model, settings, problem_options=dict(lip_contact=lip_settings) if contact else None)
+    if "wide-pattern" in ablations:
+        with every_lip_pair_in_pattern(WIDE_PATTERN_RADIUS):
+            problem = tracker.problem
+    else:
+        problem = tracker.problem
     if "exact-lips" in ablations:
         problem.lips.add_newton_correction = lambda x, A, constrained: False
     if "ascents" in ablations:
@@ -167,11 +196,6 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "residual-refresh" in ablations:
         problem.solver.judge_factor_by_energy = False
-    if "stiff-lips" in ablations:
-        import ipctk
-        lips = problem.lips
-        lips.stiffness = args.stiff_lips
-        lips.potential = ipctk.BarrierPotential(lips.dhat, lips.stiffness, True)
     if "slow-refresh" in ablations:
         problem.solver.reuse_policy.refresh_contraction = args.slow_refresh_contraction
     if "step-stop-only" in ablations:
@@ -187,7 +211,7 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
               if term is not None}
     newton = NewtonCount(problem.solver)
     relaxation = RelaxationCount(problem.solver.relaxation)
-    last = dict(newton=0, **{c: 0 for c in COUNTERS}, relaxation=(0.0, 0),
+    last = dict(newton=0, allocations=0, **{c: 0 for c in COUNTERS}, relaxation=(0.0, 0),
                 **{f"{label}.{term}": (0.0, 0) for label, t in timers.items() for term in t.names})
     start = time.perf_counter()
 
@@ -196,6 +220,9 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         row = dict(variant=name, frame=args.start + result.frame, warm=bool(rows), seconds=round(result.seconds, 2),
                    gn_steps=result.gn_steps, newton_iterations=newton.iterations - last["newton"])
         last["newton"] = newton.iterations
+        # Entries the contact added outside the tangent's pattern (each a reallocation).
+        allocations = int(problem.solver.tangent.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)["mallocs"])
+        row["tangent_allocations"], last["allocations"] = allocations - last["allocations"], allocations
         for counter in COUNTERS:
             value = getattr(problem.solver, counter)
             row[counter], last[counter] = value - last[counter], value

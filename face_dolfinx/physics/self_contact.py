@@ -18,11 +18,15 @@ projected onto the positive semidefinite ones (``add_newton_correction``, IPC's 
 exact one turns indefinite along the pressed lips' sliding.
 
 A pair couples nodes of the two lips that share no element, outside the finite-element sparsity.
-``coupled_blocks`` lists the lip node pairs within ``pattern_radius`` of each other at rest; the
-solver adds them to the tangent's pattern once at set-up (``equilibrium.solver``,
-``widened_tangent``). A pair found beyond it (lips sliding far along each other) is still added:
-the matrix accepts the new entry and MUMPS analyses the changed pattern again at the next
-factorisation.
+``coupled_blocks`` lists the pairs of an upper and a lower lip node within ``pattern_radius`` of
+each other at rest; the solver adds them to the tangent's pattern once at set-up
+(``equilibrium.solver``, ``widened_tangent``). The default radius holds every pair a barrier pair
+can couple while the lips slide up to ``PATTERN_SLIDE`` on each other: its primitives then lie at
+most that far apart at rest, and each of its nodes at most one lip edge from its primitive's
+nearest point. A wider pattern costs every factorisation fill (the 404K face's lips within 15 mm
+of each other in any order: 28 % more flops than the tangent without contact; docs/contact.md). A
+pair found beyond it (lips sliding further) is still added: the matrix accepts the new entry and
+MUMPS analyses the changed pattern again at the next factorisation.
 
 Continuous collision detection (``ipctk.compute_collision_free_stepsize``) bounds every Newton
 step so that no point of the line-search segment lets two lip primitives come closer than
@@ -60,6 +64,11 @@ NARROW_PHASE = ipctk.AdditiveCCD()
 # Newton iterations a solve with lip contact may take before continuation takes over.
 LIP_NEWTON_ITERATIONS = 100
 
+# How far the lips may slide on each other (mm, at rest) before a barrier pair couples nodes outside
+# the tangent's pattern (``coupled_blocks``): the built-in face's bilabial take slides them up to
+# 1.7 mm (docs/contact.md, "The tangent's pattern").
+PATTERN_SLIDE = 3.0
+
 # The landmarks that place the mouth.
 LIP_LANDMARKS = ("mouth_corner_left", "mouth_corner_right", "upper_lip_center", "lower_lip_center")
 
@@ -70,14 +79,15 @@ class LipContactSettings:
     scale: a stiffer barrier holds the lips further apart under the same pressure); how far from
     the mouth-corner segment a facet of the slit may lie (``depth``, mm) and how squarely it must
     face the other lip (``facing``: cosine of the angle between its normal and the direction
-    between the lips); ``pattern_radius`` (mm): lip node pairs this close at rest get room in the
-    tangent's sparsity (docs/contact.md)."""
+    between the lips); ``pattern_radius`` (mm): pairs of an upper and a lower lip node this close at
+    rest get room in the tangent's sparsity (None: ``PATTERN_SLIDE`` plus twice the lips' longest
+    edge; docs/contact.md)."""
 
     dhat: float = 0.05
     stiffness: float = 10.0
     depth: float = 15.0
     facing: float = 0.7
-    pattern_radius: float = 15.0
+    pattern_radius: float | None = None
     where: str = "the lip contact settings"  # named in error messages (a file, an option)
 
 
@@ -278,12 +288,23 @@ class LipContact:
 
     # -- sparsity ----------------------------------------------------------------------------
     def coupled_blocks(self) -> np.ndarray:
-        """(pairs, 2) global block indices of the lip nodes within ``pattern_radius`` of each other at
-        rest, both orders: entries the tangent's sparsity must hold."""
+        """(pairs, 2) global block indices of the upper and lower lip nodes within
+        ``pattern_radius`` of each other at rest, both orders: entries the tangent's sparsity must hold."""
         rest = self.surface.rest
-        distance = np.linalg.norm(rest[:, None, :] - rest[None, :, :], axis=2)
-        i, j = np.nonzero(distance <= self.settings.pattern_radius)
-        return np.column_stack([self.global_blocks[i], self.global_blocks[j]])
+        upper, lower = self.upper_nodes, self.lower_nodes
+        distance = np.linalg.norm(rest[upper, None, :] - rest[None, lower, :], axis=2)
+        i, j = np.nonzero(distance <= self.pattern_radius)
+        pairs = np.column_stack([self.global_blocks[upper[i]], self.global_blocks[lower[j]]])
+        return np.concatenate([pairs, pairs[:, ::-1]])
+
+    @property
+    def pattern_radius(self) -> float:
+        """The settings' ``pattern_radius``, or by default ``PATTERN_SLIDE`` plus twice the longest
+        edge of the lip surfaces (mm)."""
+        if self.settings.pattern_radius is not None:
+            return self.settings.pattern_radius
+        rest, edges = self.surface.rest, self.mesh.edges
+        return PATTERN_SLIDE + 2.0 * float(np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1).max())
 
     # -- the solver's energy-term interface ---------------------------------------------------
     def energy(self, x: PETSc.Vec) -> float:

@@ -63,7 +63,8 @@ class Tracker:
     ``rank_groups`` > 1 splits the model's communicator into that many groups of ranks, each
     fitting whole chunks of a take on its own copy of the mesh (``open_folder(chunks=...)``). The
     problem (spaces, compiled forms, solver) is built on first use and kept for every take tracked;
-    ``problem_options`` are further ``FaceProblem`` keywords (e.g. ``petsc_options``, ``degree``).
+    ``problem_options`` are further ``FaceProblem`` keywords (e.g. ``petsc_options``, ``degree``);
+    they take the place of the settings' own (e.g. ``lip_contact``, the lips' barrier).
     """
 
     def __init__(self, model, settings: TrackingSettings = PRESETS["default"], *, rank_groups: int = 1,
@@ -85,7 +86,7 @@ class Tracker:
             if self.settings.contact and not model.teeth and self.comm.rank == 0:
                 log.warning("model %s has no teeth ([teeth] in its model.toml): contact holds the lips on each "
                             "other only", model.path)
-            self._problem = FaceProblem(model, **self.settings.problem_options(model), **self.problem_options)
+            self._problem = FaceProblem(model, **{**self.settings.problem_options(model), **self.problem_options})
         return self._problem
 
     def record(self, capture: Capture, placement, *, chunks: int = 1, extra: dict | None = None) -> dict:
