@@ -34,7 +34,6 @@ the whole run stops (summary line with what it has, then MPI abort) after ``--ab
         mpirun -n 2 python benchmarks/contact_tracking.py --tets 400000 --frames 4 --max-seconds 1800
 """
 import argparse
-import contextlib
 import json
 import logging
 import pathlib
@@ -74,24 +73,6 @@ VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "co
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
-
-
-@contextlib.contextmanager
-def every_lip_pair_in_pattern(radius: float):
-    """Problems built inside get a tangent whose pattern holds every pair of lip nodes within
-    ``radius`` of each other at rest (``LipContact.coupled_blocks`` replaced meanwhile)."""
-    from face_dolfinx.physics.self_contact import LipContact
-    across = LipContact.coupled_blocks
-
-    def every_pair(lips):
-        rest = lips.surface.rest
-        i, j = np.nonzero(np.linalg.norm(rest[:, None, :] - rest[None, :, :], axis=2) <= radius)
-        return np.column_stack([lips.global_blocks[i], lips.global_blocks[j]])
-    LipContact.coupled_blocks = every_pair
-    try:
-        yield
-    finally:
-        LipContact.coupled_blocks = across
 
 
 class TimedTerm:
@@ -178,6 +159,7 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
                                       stiffness=args.stiff_lips if "stiff-lips" in ablations else LipContactSettings.stiffness)
     tracker = Tracker(model, settings, problem_options=dict(lip_contact=lip_settings) if contact else None)
     if "wide-pattern" in ablations:
+        from lip_pattern import every_lip_pair_in_pattern
         with every_lip_pair_in_pattern(WIDE_PATTERN_RADIUS):
             problem = tracker.problem
     else:

@@ -19,7 +19,7 @@ from face_dolfinx.model.bones import jaw_pose
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.points import PointEvaluator
 from face_dolfinx.physics.problem import FaceProblem
-from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, LipIterates, lip_facets
+from face_dolfinx.physics.self_contact import PATTERN_SLIDE, LipContact, LipContactSettings, LipIterates, lip_facets
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity
 
 CLOSED = np.radians(-2.0)  # the jaw 2 degrees beyond its rest (closed) pose
@@ -192,7 +192,23 @@ def test_a_state_seen_again_gives_what_a_fresh_lip_contact_gives(pressed, model)
 
 def test_the_tangents_sparsity_holds_the_lip_pairs(pressed):
     """Every entry of the pressed lips' Hessian lies in the pattern set up at rest (no new nonzero,
-    so MUMPS keeps its analysis)."""
+    so MUMPS keeps its analysis), which widens the finite-element pattern by pairs of an upper and a
+    lower lip node only, within the lips' slide plus two lip edges."""
+    lips = pressed.lips
+    rest, edges = lips.surface.rest, lips.mesh.edges
+    assert lips.pattern_radius == pytest.approx(
+        PATTERN_SLIDE + 2 * np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1).max())
+    node = {block: k for k, block in enumerate(lips.global_blocks)}
+    pairs = np.array([[node[a], node[b]] for a, b in lips.coupled_blocks()])
+    upper = np.isin(pairs, lips.upper_nodes)
+    lower = np.isin(pairs, lips.lower_nodes)
+    assert ((upper[:, 0] & lower[:, 1]) | (lower[:, 0] & upper[:, 1])).all()
+    assert np.linalg.norm(rest[pairs[:, 0]] - rest[pairs[:, 1]], axis=1).max() <= lips.pattern_radius
+    # The pressed primitives lay at least the lips' rest distance apart at rest, and within the slide
+    # the pattern leaves room for.
+    rest_distance = lips.min_distance(np.zeros_like(pressed.u.x.array))
+    assert lips.slide(np.zeros_like(pressed.u.x.array)) == 0.0
+    assert rest_distance <= lips.slide(pressed.u.x.array) <= PATTERN_SLIDE
     before = pressed.solver.tangent.getInfo()["nz_allocated"]
     pressed.solver.assemble_tangent(pressed.solver.tangent)
     info = pressed.solver.tangent.getInfo()

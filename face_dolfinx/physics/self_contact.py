@@ -253,6 +253,16 @@ class LipContact:
         """Number of barrier pairs (point-triangle, edge-edge, ...) within dhat."""
         return len(self._collisions(self.positions(displacement)))
 
+    def slide(self, displacement: np.ndarray) -> float:
+        """Largest distance at rest between the two primitives of a barrier pair at ``displacement``
+        (mm; 0 without pairs): how far the pressed lips have slid on each other, their rest gap
+        included (``PATTERN_SLIDE``)."""
+        state = self._state(self.positions(displacement))
+        rest, edges, faces = np.asfortranarray(self.surface.rest), self.mesh.edges, self.mesh.faces
+        # ipctk's distances are squared.
+        return max((float(np.sqrt(pair.compute_distance(pair.dof(rest, edges, faces)))) for pair in state.collisions),
+                   default=0.0)
+
     def nodal_forces(self, displacement: np.ndarray) -> np.ndarray:
         """(lip nodes, 3) dE_s/dx: the contact force each lip node exerts (mN)."""
         vertices = self.positions(displacement)
