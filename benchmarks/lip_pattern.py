@@ -33,7 +33,7 @@ from petsc4py import PETSc
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from provenance import record  # noqa: E402
+from provenance import write_result  # noqa: E402
 from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
 from face_dolfinx.model.bones import jaw_pose  # noqa: E402
 from face_dolfinx.model.folder import load_model  # noqa: E402
@@ -128,11 +128,7 @@ def main():
         row.update(tets=model.mesh.topology.index_map(3).size_global, ranks=comm.size)
         if comm.rank == 0:
             print(json.dumps(row), flush=True)
-    if comm.rank == 0:
-        out = pathlib.Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(rows, indent=1) + "\n")
-    record(args.out, tets=args.tets, ranks=comm.size)
+    write_result(args.out, rows, tets=args.tets, ranks=comm.size)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ from petsc4py import PETSc
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from provenance import record  # noqa: E402
+from provenance import write_result  # noqa: E402
 from face_dolfinx.capture.synthetic import synthesize_take, truth_contact_options  # noqa: E402
 from face_dolfinx.fitting import MarkerSet  # noqa: E402
 from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
@@ -63,10 +63,7 @@ def main():
                    seconds=round(time.perf_counter() - began, 1), frames=rows)
     if comm.rank == 0:
         print(json.dumps({key: value for key, value in summary.items() if key != "frames"}), flush=True)
-        out = pathlib.Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(summary, indent=1) + "\n")
-    record(args.out, tets=args.tets, ranks=comm.size)
+    write_result(args.out, summary, tets=args.tets, ranks=comm.size)
 
 
 if __name__ == "__main__":

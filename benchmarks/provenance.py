@@ -126,6 +126,15 @@ def record(path, tets=None, ranks: int | None = None, command: str | None = None
     return append(path, entry(command or this_command(ranks), tets, ranks, **extra))
 
 
+def write_result(path, data, tets=None, ranks: int | None = None):
+    """Rank 0 writes ``data`` to the result file ``path`` (indented JSON) and records it (``record``)."""
+    if mpi_world()[0] == 0:
+        out = pathlib.Path(path)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(data, indent=1) + "\n")
+    return record(path, tets=tets, ranks=ranks)
+
+
 def parse_command(command: list[str]) -> tuple[list[int], int]:
     """The ``--tets`` values and the ``mpirun -n`` ranks of a command line (1 without mpirun)."""
     tets, ranks = [], 1

@@ -76,6 +76,16 @@ record $RESULTS/contact/slow_refresh_404k_np2.jsonl mpirun -n 2 $PYTHON benchmar
 record $RESULTS/contact/stiff_lips_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact contact+stiff-lips \
   --max-seconds 2400 --abort-seconds 3600
+# The tangent's room for the lips (docs/contact.md, "The tangent's pattern"): the lips' slide over the
+# bilabial take, the factor of each pattern, and the tracking with every lip pair within 15 mm.
+$PYTHON benchmarks/lip_slide.py --tets 5000 --out $RESULTS/contact/lip_slide_5k.json
+$PYTHON benchmarks/lip_slide.py --tets 20000 --out $RESULTS/contact/lip_slide_20k.json
+$PYTHON benchmarks/lip_pattern.py --tets 5000 --radii 0 3 --every-pair-within 15 --out $RESULTS/contact/lip_pattern_5k.json
+mpirun -n 2 $PYTHON benchmarks/lip_pattern.py --tets 400000 --radii --every-pair-within 15 --no-closure \
+  --out $RESULTS/contact/lip_pattern_factor_404k_np2.json
+record $RESULTS/contact/lip_pattern_tracking_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact contact+wide-pattern \
+  --max-seconds 2400 --abort-seconds 4000
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

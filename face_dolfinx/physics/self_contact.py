@@ -23,9 +23,9 @@ each other at rest; the solver adds them to the tangent's pattern once at set-up
 (``equilibrium.solver``, ``widened_tangent``). The default radius holds every pair a barrier pair
 can couple while the lips slide up to ``PATTERN_SLIDE`` on each other: its primitives then lie at
 most that far apart at rest, and each of its nodes at most one lip edge from its primitive's
-nearest point. A wider pattern costs every factorisation fill (the 404K face's lips within 15 mm
-of each other in any order: 28 % more flops than the tangent without contact; docs/contact.md). A
-pair found beyond it (lips sliding further) is still added: the matrix accepts the new entry and
+nearest point. Room costs every factorisation fill: on the 404K face every pair of lip nodes
+within 15 mm of each other makes 32 % more flops than the tangent without lip contact, the default
+room 12 % (docs/contact.md, "The tangent's pattern"). A pair found beyond it (lips sliding further) is still added: the matrix accepts the new entry and
 MUMPS analyses the changed pattern again at the next factorisation.
 
 Continuous collision detection (``ipctk.compute_collision_free_stepsize``) bounds every Newton
