@@ -335,6 +335,9 @@ def test_tracking_with_contact_builds_the_lips_into_its_problem(model):
     problem = Tracker(model, settings).problem
     assert problem.lips is not None and problem.lips.settings.where == "--contact"
     assert problem.solver.energy_terms == (problem.teeth_contact, problem.lips)
+    # A tracker's problem options take the place of the settings' (a stiffer lip barrier).
+    stiffer = Tracker(model, settings, problem_options=dict(lip_contact=LipContactSettings(stiffness=50.0))).problem
+    assert stiffer.lips.stiffness == 50.0 and stiffer.teeth_contact is not None
 
 
 def test_the_jaw_carries_the_lining_but_not_the_lips(model):
