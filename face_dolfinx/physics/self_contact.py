@@ -25,8 +25,9 @@ can couple while the lips slide up to ``PATTERN_SLIDE`` on each other: its primi
 most that far apart at rest, and each of its nodes at most one lip edge from its primitive's
 nearest point. Room costs every factorisation fill: on the 404K face every pair of lip nodes
 within 15 mm of each other makes 32 % more flops than the tangent without lip contact, the default
-room 12 % (docs/contact.md, "The tangent's pattern"). A pair found beyond it (lips sliding further) is still added: the matrix accepts the new entry and
-MUMPS analyses the changed pattern again at the next factorisation.
+room 12 % (docs/contact.md, "The tangent's pattern"). A pair found beyond it (lips sliding
+further) is still added: the matrix accepts the new entry and MUMPS analyses the changed pattern
+again at the next factorisation.
 
 Continuous collision detection (``ipctk.compute_collision_free_stepsize``) bounds every Newton
 step so that no point of the line-search segment lets two lip primitives come closer than
