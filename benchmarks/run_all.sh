@@ -86,6 +86,9 @@ mpirun -n 2 $PYTHON benchmarks/lip_pattern.py --tets 400000 --radii --every-pair
 record $RESULTS/contact/lip_pattern_tracking_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact contact+wide-pattern \
   --max-seconds 2400 --abort-seconds 4000
+record $RESULTS/contact/lip_pattern_tracking_swapped_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact+wide-pattern contact \
+  --max-seconds 2400 --abort-seconds 4000
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
