@@ -72,7 +72,6 @@ def factor_costs(problems: list, rounds: int, comm) -> list[dict]:
             spent.append(time.perf_counter() - began)
     rows = []
     for problem, spent in zip(problems, seconds):
-        problem.solver.factorize()  # the factor of this tangent, to read its size
         factor = problem.solver.snes.getKSP().getPC().getFactorMatrix()
         rows.append(dict(tangent_entries=int(problem.solver.tangent.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)["nz_used"]),
                          factor_entries=int(factor.getMumpsInfog(29)),
