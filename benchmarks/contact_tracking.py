@@ -63,13 +63,16 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # bounded length achieves), and the lips' barrier of ``--stiff-lips`` kPa instead of the
 # ``LipContactSettings`` default (the truth keeps the default), and the tangent's pattern holding every pair
 # of lip nodes within WIDE_PATTERN_RADIUS of each other at rest, of one lip or both, instead of
-# ``LipContact.coupled_blocks``'s.
+# ``LipContact.coupled_blocks``'s, and a prediction cut short solved first at the controls it reached and
+# the rest predicted from there (``FaceProblem.staged_prediction``).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
-             "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern")
+             "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
+             "staged")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
-            "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern")
+            "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
+            "contact+staged")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
@@ -174,6 +177,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         teeth.relative_fraction = lambda start, end, end_poses: relative(start, end, teeth.poses)
     if "cut-head" in ablations:
         problem.carry_head = False
+    if "staged" in ablations:
+        problem.staged_prediction = True
     if "cut-lining" in ablations:
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "residual-refresh" in ablations:
