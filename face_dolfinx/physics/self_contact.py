@@ -154,6 +154,9 @@ class LipContact:
     # face, from rest: 238 Newton iterations in 2 load steps projected throughout, 74 in 1 this way,
     # 75 with the exact Hessian always (docs/contact.md, "Newton with pressed lips").
     exact_near_solution = True
+    # Newton's model of the barrier (``add_newton_correction``) scaled by this much: its
+    # corrections then close the pressed lips by less than the log barrier's linearisation does.
+    newton_stiffening = 1.0
 
     def __init__(self, space: fem.FunctionSpace, upper: np.ndarray, lower: np.ndarray, up: np.ndarray,
                  settings: LipContactSettings, constrained_blocks: np.ndarray):
@@ -352,7 +355,8 @@ class LipContact:
         state = self._state(self.positions(x.array_r))
         change = None
         if len(state.collisions):
-            change = (state.hessian(self.potential, projected=True) - state.hessian(self.potential)).tocsc()
+            change = (self.newton_stiffening * state.hessian(self.potential, projected=True)
+                      - state.hessian(self.potential)).tocsc()
             change.eliminate_zeros()
         # The ranks may differ in the last bits of ipctk's threaded sums: they agree on the answer
         # (and assemble together) by the reduction.
