@@ -67,12 +67,12 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # the rest predicted from there (``FaceProblem.staged_prediction``).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
              "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
-             "staged", "stiff-newton-lips")
+             "staged", "stiff-newton-lips", "wide-newton-lips")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
             "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
-            "contact+staged", "contact+stiff-newton-lips")
+            "contact+staged", "contact+stiff-newton-lips", "contact+wide-newton-lips")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
@@ -181,6 +181,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.staged_prediction = True
     if "stiff-newton-lips" in ablations:
         problem.lips.newton_stiffening = args.newton_stiffening
+    if "wide-newton-lips" in ablations:
+        problem.lips.newton_reach = args.newton_reach
     if "cut-lining" in ablations:
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "residual-refresh" in ablations:
@@ -340,6 +342,8 @@ def main():
                         help="the lips' barrier stiffness of the variant contact+stiff-lips")
     parser.add_argument("--newton-stiffening", type=float, default=10.0, metavar="FACTOR",
                         help="the lips' barrier in Newton's tangent scaled by this much in contact+stiff-newton-lips")
+    parser.add_argument("--newton-reach", type=float, default=0.5, metavar="MM",
+                        help="reach of the barrier added to Newton's tangent in contact+wide-newton-lips")
     parser.add_argument("--out", default="runs/contact_tracking", help="folder for the variants' fit folders")
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="log every Newton solve, Gauss-Newton step and pulled-back prediction to standard "
