@@ -59,9 +59,6 @@ log = logging.getLogger(__name__)
 # (``FaceProblem._lining_projected``) rather than the prediction cut short.
 PROJECTION_LIMIT = 0.5
 
-# The most equilibria a staged prediction (``FaceProblem.staged_prediction``) solves on its way.
-PREDICTION_STAGES = 4
-
 
 @dataclass
 class Controls:
@@ -301,9 +298,6 @@ class FaceProblem:
         # Whether a prediction with lip or teeth contact starts from the equilibrium carried with
         # the head (``_carried_with_head``); False only to measure it.
         self.carry_head = True
-        # Whether a prediction cut short is first solved at the controls it reached and the rest
-        # predicted from there (up to PREDICTION_STAGES times) before Newton at the target.
-        self.staged_prediction = False
         energy_terms = tuple(term for term in (self.contact, self.teeth_contact, self.lips) if term is not None)
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
         # closed by the orbicularis oris at 1): Newton is given room before continuation.
@@ -512,47 +506,57 @@ class FaceProblem:
             equilibrium = self.u.x.array.copy()
             origin = self._carried_with_head(start, target)
             carried = equilibrium if origin is start else self.u.x.array.copy()
-            fraction, guess, cuts = self._prediction_bound(carried, guess, origin, target, 0.0)
+            # A long linear prediction can invert elements: pull it back towards the equilibrium.
+            fraction = self.solver.inversion_guard.step_fraction(carried, carried - guess)
+            cuts = [("inversion guard", fraction)]
+            # ... or let the lips pass through each other, or the lining into the teeth
+            for label, term in (("lips", self.lips), ("teeth", self.teeth_contact), ("objects", self.contact)):
+                if term is None:
+                    continue
+                end = carried + fraction * (guess - carried)
+                if term is self.teeth_contact:  # the teeth move with their bones along the prediction
+                    poses = self.teeth_poses(origin.interpolate(target, fraction))
+                    cut = term.relative_fraction(carried, end, poses)
+                    projected = self._lining_projected(carried, end, poses) if cut < 1.0 else None
+                    if projected is not None:
+                        guess = carried + (projected - carried) / fraction
+                        cuts.append(("teeth, lining projected instead", cut))
+                        continue
+                else:
+                    cut = term.admissible_fraction(carried, end)
+                fraction *= cut
+                cuts.append((label, cut))
             if fraction < 1.0:
                 log.debug("prediction pulled back to %.3g of the way (%s)%s", fraction,
                           ", ".join(f"{label} {cut:.3g}" for label, cut in cuts if cut < 1.0),
                           "" if origin is start else " after the head's rigid motion")
             self.u.x.array[:] = carried + fraction * (guess - carried)
-            held = self._place_prediction(origin, target, fraction, origin)
-            stages = 0
-            while self.staged_prediction and 0.0 < fraction < 1.0 and stages < PREDICTION_STAGES:
-                # Solved at the controls it reached, the cut prediction starts near its equilibrium;
-                # the rest of the way is predicted from there along the same sensitivities.
-                stages += 1
-                reached = origin.interpolate(target, fraction)
+            # The pulled-back prediction stands for the controls that far along: its bone nodes go
+            # exactly to their frames there (the prediction is linear in the controls) and the
+            # objects and the teeth move there from the equilibrium's poses in solves that hold the
+            # bones still. Bones moving in such a solve (to the old frames, or the rest of the way
+            # to linearised ones) pressed the lining against the teeth at their new pose until a
+            # node was inside (Newton's barrier blocks had no finite value; the fit ended).
+            held = 0
+            if self.contact is not None or self.teeth_contact is not None:
+                reached = origin.interpolate(target, fraction) if fraction < 1.0 else target
                 self.set_controls(reached)
-                ok, iterations, why = self.solver.newton()
-                held += iterations
-                if not ok:
-                    break
-                base = self.u.x.array.copy()
-                rest = base + (1.0 - fraction) * (guess - carried)
-                cut, rest, cuts = self._prediction_bound(base, rest, origin, target, fraction)
-                self.u.x.array[:] = base + cut * (rest - base)
-                previous, fraction = reached, fraction + cut * (1.0 - fraction)
-                log.debug("prediction stage %d: %d Newton iterations, the rest pulled back to %.3g (%s): "
-                          "%.3g of the way", stages, iterations, cut,
-                          ", ".join(f"{label} {c:.3g}" for label, c in cuts if c < 1.0), fraction)
-                held += self._place_prediction(origin, target, fraction, previous)
-            else:
-                ok = True
-            if ok:
-                if fraction < 1.0 and (self.contact is not None or self.teeth_contact is not None):
+                self.u.x.array.reshape(-1, 3)[self.bone_blocks] = self.bone_displacement.x.array.reshape(-1, 3)[
+                    self.bone_blocks]
+                self.u.x.scatter_forward()
+                self._put_objects(origin)
+                held = self._clear_objects(reached)
+                if fraction < 1.0:
                     # The solve takes the bones the rest of the way by lifting; the objects and the
                     # teeth go to the target's poses first, pushing the lining out of their way. Put
                     # there unchecked, the teeth overran a lining node: a NaN residual, and the solve
                     # restarted from the last equilibrium.
-                    self._put_objects(origin.interpolate(target, fraction))
+                    self._put_objects(reached)
                     held += self._clear_objects(target)
-                self.set_controls(target)
-                ok, iterations, why = self.solver.newton()
-                if ok:
-                    return SolveReport(True, held + iterations, 1, why, time.perf_counter() - began)
+            self.set_controls(target)
+            ok, iterations, why = self.solver.newton()
+            if ok:
+                return SolveReport(True, held + iterations, 1, why, time.perf_counter() - began)
             log.info("Newton from the predicted shape failed (%s); continuing from the last "
                      "equilibrium", why)
             self.u.x.array[:] = equilibrium
@@ -578,53 +582,6 @@ class FaceProblem:
                                                 max_halvings=max_halvings)
         self.set_controls(target)
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
-
-    def _prediction_bound(self, base: np.ndarray, end: np.ndarray, origin: Controls, target: Controls,
-                          start: float) -> tuple[float, np.ndarray, list]:
-        """How far the straight path from ``base`` to the prediction ``end`` (dof arrays) may go,
-        ``end`` (its lining moved out of the teeth where that replaces a cut) and the cuts by
-        label. The path runs over the controls from ``start`` to 1 of the way from ``origin`` to
-        ``target``; the teeth move with their bones along it."""
-        # A long linear prediction can invert elements: pull it back towards the equilibrium.
-        fraction = self.solver.inversion_guard.step_fraction(base, base - end)
-        cuts = [("inversion guard", fraction)]
-        # ... or let the lips pass through each other, or the lining into the teeth
-        for label, term in (("lips", self.lips), ("teeth", self.teeth_contact), ("objects", self.contact)):
-            if term is None:
-                continue
-            point = base + fraction * (end - base)
-            if term is self.teeth_contact:
-                poses = self.teeth_poses(origin.interpolate(target, start + fraction * (1.0 - start)))
-                cut = term.relative_fraction(base, point, poses)
-                projected = self._lining_projected(base, point, poses) if cut < 1.0 else None
-                if projected is not None:
-                    end = base + (projected - base) / fraction
-                    cuts.append(("teeth, lining projected instead", cut))
-                    continue
-            else:
-                cut = term.admissible_fraction(base, point)
-            fraction *= cut
-            cuts.append((label, cut))
-        return fraction, end, cuts
-
-    def _place_prediction(self, origin: Controls, target: Controls, fraction: float, before: Controls) -> int:
-        """With objects or teeth: the pulled-back prediction in the unknown stands for the controls
-        ``fraction`` of the way from ``origin`` to ``target`` (it is linear in the controls): its
-        bone nodes go exactly to their frames there, and the objects and the teeth move there from
-        their poses in ``before`` in solves that hold the bones still (``_clear_objects``). Bones
-        moving in such a solve (to the old frames, or the rest of the way to linearised ones)
-        pressed the lining against the teeth at their new pose until a node was inside (Newton's
-        barrier blocks had no finite value; the fit ended). Returns those solves' Newton
-        iterations."""
-        if self.contact is None and self.teeth_contact is None:
-            return 0
-        reached = origin.interpolate(target, fraction) if fraction < 1.0 else target
-        self.set_controls(reached)
-        self.u.x.array.reshape(-1, 3)[self.bone_blocks] = self.bone_displacement.x.array.reshape(-1, 3)[
-            self.bone_blocks]
-        self.u.x.scatter_forward()
-        self._put_objects(before)
-        return self._clear_objects(reached)
 
     def _lining_projected(self, equilibrium: np.ndarray, end: np.ndarray, poses) -> np.ndarray | None:
         """The prediction ``end`` with the lining nodes that it takes too close to the teeth (at
