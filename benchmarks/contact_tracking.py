@@ -63,16 +63,13 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # bounded length achieves), and the lips' barrier of ``--stiff-lips`` kPa instead of the
 # ``LipContactSettings`` default (the truth keeps the default), and the tangent's pattern holding every pair
 # of lip nodes within WIDE_PATTERN_RADIUS of each other at rest, of one lip or both, instead of
-# ``LipContact.coupled_blocks``'s, and a prediction cut short solved first at the controls it reached and
-# the rest predicted from there (``FaceProblem.staged_prediction``).
+# ``LipContact.coupled_blocks``'s.
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
-             "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
-             "staged", "stiff-newton-lips", "wide-newton-lips")
+             "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
-            "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
-            "contact+staged", "contact+stiff-newton-lips", "contact+wide-newton-lips")
+            "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
@@ -177,12 +174,6 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         teeth.relative_fraction = lambda start, end, end_poses: relative(start, end, teeth.poses)
     if "cut-head" in ablations:
         problem.carry_head = False
-    if "staged" in ablations:
-        problem.staged_prediction = True
-    if "stiff-newton-lips" in ablations:
-        problem.lips.newton_stiffening = args.newton_stiffening
-    if "wide-newton-lips" in ablations:
-        problem.lips.newton_reach = args.newton_reach
     if "cut-lining" in ablations:
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "residual-refresh" in ablations:
@@ -340,10 +331,6 @@ def main():
                         help="refresh contraction of the variant contact+slow-refresh")
     parser.add_argument("--stiff-lips", type=float, default=100.0, metavar="KPA",
                         help="the lips' barrier stiffness of the variant contact+stiff-lips")
-    parser.add_argument("--newton-stiffening", type=float, default=10.0, metavar="FACTOR",
-                        help="the lips' barrier in Newton's tangent scaled by this much in contact+stiff-newton-lips")
-    parser.add_argument("--newton-reach", type=float, default=0.5, metavar="MM",
-                        help="reach of the barrier added to Newton's tangent in contact+wide-newton-lips")
     parser.add_argument("--out", default="runs/contact_tracking", help="folder for the variants' fit folders")
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="log every Newton solve, Gauss-Newton step and pulled-back prediction to standard "

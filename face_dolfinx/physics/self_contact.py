@@ -154,10 +154,6 @@ class LipContact:
     # face, from rest: 238 Newton iterations in 2 load steps projected throughout, 74 in 1 this way,
     # 75 with the exact Hessian always (docs/contact.md, "Newton with pressed lips").
     exact_near_solution = True
-    # Newton's model of the barrier (``add_newton_correction``) scaled by this much: its
-    # corrections then close the pressed lips by less than the log barrier's linearisation does.
-    newton_stiffening = 1.0
-    newton_reach = 0.0
 
     def __init__(self, space: fem.FunctionSpace, upper: np.ndarray, lower: np.ndarray, up: np.ndarray,
                  settings: LipContactSettings, constrained_blocks: np.ndarray):
@@ -353,33 +349,10 @@ class LipContact:
         tangent then turns indefinite along the lips' sliding, and Newton's corrections there point
         nowhere useful. Returns whether the matrix changed (the same on every rank)."""
         free = self.surface.free(constrained, x.getLocalSize())
-        vertices = self.positions(x.array_r)
-        state = self._state(vertices)
+        state = self._state(self.positions(x.array_r))
         change = None
         if len(state.collisions):
-            change = (self.newton_stiffening * state.hessian(self.potential, projected=True)
-                      - state.hessian(self.potential)).tocsc()
-        if self.newton_reach > self.dhat:
-            # Newton's model only: a barrier of wider reach on the pairs the step may close.
-            reach = ipctk.NormalCollisions()
-            reach.use_area_weighting = True
-            reach.build(self.mesh, vertices, self.newton_reach)
-            # Only pairs across the lips: the tangent's pattern has room for those alone.
-            lower = np.zeros(len(vertices), dtype=bool)
-            lower[self.lower_nodes] = True
-            edges, faces = self.mesh.edges, self.mesh.faces
-            for kind in ("vv_collisions", "ev_collisions", "ee_collisions", "fv_collisions"):
-                kept = []
-                for collision in getattr(reach, kind):
-                    ids = [i for i in collision.vertex_ids(edges, faces) if i >= 0]
-                    if lower[ids].any() and not lower[ids].all():
-                        kept.append(collision)
-                setattr(reach, kind, kept)
-            if len(reach):
-                wide = ipctk.BarrierPotential(self.newton_reach, self.stiffness, True).hessian(
-                    reach, self.mesh, vertices, project_hessian_to_psd=ipctk.PSDProjectionMethod.CLAMP).tocsc()
-                change = wide if change is None else change + wide
-        if change is not None:
+            change = (state.hessian(self.potential, projected=True) - state.hessian(self.potential)).tocsc()
             change.eliminate_zeros()
         # The ranks may differ in the last bits of ipctk's threaded sums: they agree on the answer
         # (and assemble together) by the reduction.
