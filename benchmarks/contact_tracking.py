@@ -63,13 +63,16 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # bounded length achieves), and the lips' barrier of ``--stiff-lips`` kPa instead of the
 # ``LipContactSettings`` default (the truth keeps the default), and the tangent's pattern holding every pair
 # of lip nodes within WIDE_PATTERN_RADIUS of each other at rest, of one lip or both, instead of
-# ``LipContact.coupled_blocks``'s.
+# ``LipContact.coupled_blocks``'s, and Newton's tangent without the lips' barrier of wider reach
+# (``LipContactSettings.newton_reach`` 0).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
-             "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern")
+             "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
+             "narrow-newton-lips")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
-            "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern")
+            "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
+            "contact+narrow-newton-lips")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
@@ -156,7 +159,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
                                             refresh_contraction=args.refresh_contraction if contact else None,
                                             contact_relaxation=True if "relaxation" in ablations else None))
     lip_settings = LipContactSettings(where="--contact",
-                                      stiffness=args.stiff_lips if "stiff-lips" in ablations else LipContactSettings.stiffness)
+                                      stiffness=args.stiff_lips if "stiff-lips" in ablations else LipContactSettings.stiffness,
+                                      newton_reach=0.0 if "narrow-newton-lips" in ablations else LipContactSettings.newton_reach)
     tracker = Tracker(model, settings, problem_options=dict(lip_contact=lip_settings) if contact else None)
     if "wide-pattern" in ablations:
         from lip_pattern import every_lip_pair_in_pattern

@@ -215,6 +215,71 @@ def test_the_tangents_sparsity_holds_the_lip_pairs(pressed):
     assert info["nz_allocated"] == before and info["mallocs"] == 0
 
 
+def test_the_wider_reach_is_in_newtons_tangent_only(pressed, model):
+    """``LipContactSettings.newton_reach``: the barrier of wider reach across the lips changes
+    Newton's tangent alone, by a symmetric positive semidefinite matrix between upper and lower lip
+    nodes inside the tangent's pattern; the energy, the gradient, the Hessian and the equilibrium
+    are those without it."""
+    settings = LipContactSettings()
+    assert settings.newton_reach > settings.dhat
+    narrow = LipContact(pressed.V, *lip_facets(model, settings), replace(settings, newton_reach=0.0),
+                        pressed.bone_blocks)
+    wide, u = pressed.lips, pressed.u.vector
+    none = np.zeros(0, dtype=np.int32)
+
+    def terms(lips, add):
+        b = u.duplicate()
+        b.set(0.0)
+        lips.add_gradient(u, b)
+        A = pressed.solver.tangent.duplicate()
+        A.zeroEntries()
+        add(lips)(u, A, none)
+        A.assemble()
+        return lips.energy(u), b, A
+
+    # (Equal up to the last bits of the IPC Toolkit's threaded sums.)
+    energies, gradients, hessians = zip(*(terms(lips, lambda lips: lips.add_hessian) for lips in (wide, narrow)))
+    assert energies[0] == pytest.approx(energies[1], rel=1e-12)
+    gradients[0].axpy(-1.0, gradients[1])
+    assert gradients[0].norm() <= 1e-12 * gradients[1].norm()
+    difference = hessians[0].copy()
+    difference.axpy(-1.0, hessians[1])
+    assert difference.norm() <= 1e-12 * hessians[1].norm()
+    # Newton's corrections: the wider reach adds pairs the narrow barrier does not have yet.
+    corrections = [terms(lips, lambda lips: lips.add_newton_correction)[2] for lips in (wide, narrow)]
+    assert corrections[0].getInfo()["mallocs"] == 0  # no entry outside the tangent's pattern
+    added = corrections[0].copy()
+    added.axpy(-1.0, corrections[1])
+    assert added.norm() > 1e-3 * corrections[1].norm()
+    assert added.isSymmetric(1e-10 * added.norm())
+    rng = np.random.default_rng(11 + pressed.comm.rank)
+    v, Dv = u.duplicate(), u.duplicate()
+    for _ in range(5):
+        v.array[:] = rng.standard_normal(v.getLocalSize())
+        added.mult(v, Dv)
+        assert v.dot(Dv) >= -1e-10 * added.norm() * v.norm() ** 2
+    # Its rows are the lip nodes' only, and it couples each lip with the other: a load on one lip's
+    # nodes alone meets rows of the other's.
+    for nodes, others in ((wide.upper_nodes, wide.lower_nodes), (wide.lower_nodes, wide.upper_nodes)):
+        only, rest = np.setdiff1d(nodes, others), np.setdiff1d(others, nodes)
+        v.set(0.0)
+        mine = np.isin(wide.surface.owned_nodes, only)
+        v.array.reshape(-1, 3)[wide.surface.owned_blocks[mine]] = rng.standard_normal((mine.sum(), 3))
+        added.mult(v, Dv)
+        lip_rows = np.zeros(u.getLocalSize() // 3, dtype=bool)
+        lip_rows[wide.surface.owned_blocks] = True
+        assert np.abs(Dv.array.reshape(-1, 3)[~lip_rows]).max(initial=0.0) == 0.0
+        on_others = np.isin(wide.surface.owned_nodes, rest)
+        other_rows = np.abs(Dv.array.reshape(-1, 3)[wide.surface.owned_blocks[on_others]]).max(initial=0.0)
+        assert pressed.comm.allreduce(other_rows, op=MPI.MAX) > 0.0
+    # The same equilibrium solved without it.
+    without = FaceProblem(model, lip_contact=replace(settings, newton_reach=0.0))
+    assert without.solve(activations=sphincter(model), jaw=jaw_pose(model.jaw, CLOSED)).converged
+    gap = np.abs(without.u.x.array - pressed.u.x.array).max()
+    assert pressed.comm.allreduce(gap, op=MPI.MAX) <= 1e-6 * pressed.comm.allreduce(
+        np.abs(pressed.u.x.array).max(), op=MPI.MAX)
+
+
 def test_held_lip_nodes_keep_the_identitys_rows_and_columns(pressed):
     """Lip nodes held by a Dirichlet condition (the teeth carry the lining's nodes along when the
     jaw moves, some of them lip nodes) get no barrier entries in their rows or columns, in the
@@ -295,6 +360,8 @@ def test_same_result_on_one_rank(builtin_model_path):
 def test_bad_input_is_refused_before_any_solve(model):
     with pytest.raises(ValueError, match="dhat and the stiffness must be positive"):
         FaceProblem(model, lip_contact=LipContactSettings(dhat=0.0))
+    with pytest.raises(ValueError, match="Newton reach"):
+        FaceProblem(model, lip_contact=LipContactSettings(newton_reach=-1.0))
     with pytest.raises(ValueError, match="apart at rest"):
         FaceProblem(model, lip_contact=LipContactSettings(dhat=1.0))  # the slit is 0.48 mm at its corners
     landmarks = dict(model.landmarks)
