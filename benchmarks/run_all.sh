@@ -89,6 +89,13 @@ record $RESULTS/contact/lip_pattern_tracking_404k_np2.jsonl mpirun -n 2 $PYTHON 
 record $RESULTS/contact/lip_pattern_tracking_swapped_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact+wide-pattern contact \
   --max-seconds 2400 --abort-seconds 4000
+# Newton's tangent with the lips' barrier of wider reach (LipContactSettings.newton_reach, the default)
+# and without it.
+record $RESULTS/contact/newton_reach_default_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact contact+narrow-newton-lips \
+  --max-seconds 2400 --abort-seconds 4000
+record $RESULTS/contact/newton_reach_default_20k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 20000 --head-motion --frames 30 --variants no-contact contact contact+narrow-newton-lips
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

@@ -127,8 +127,11 @@ class ContactRelaxation:
         A.assemble()
         for term in self.terms:
             term.add_hessian(y, A, constrained)
-            if hasattr(term, "add_newton_correction"):
-                term.add_newton_correction(y, A, constrained)
+            # A term whose Newton model adds more than the projection (the lips' wider reach)
+            # gives the projection alone: the local Newton iterates to the contact nodes' equilibrium.
+            projection = getattr(term, "add_projection", getattr(term, "add_newton_correction", None))
+            if projection is not None:
+                projection(y, A, constrained)
         K = A.createSubMatrix(rows, rows)
         K.setOption(PETSc.Mat.Option.SPD, True)
         return K

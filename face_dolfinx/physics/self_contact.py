@@ -18,8 +18,8 @@ projected onto the positive semidefinite ones (``add_newton_correction``, IPC's 
 exact one turns indefinite along the pressed lips' sliding. That tangent also carries a barrier of
 wider reach (``newton_reach``, 10 dhat by default) on the pairs across the lips: a model that sees
 only the pairs within dhat lets a correction bring together pairs it does not see, and the step
-bound then cuts it short; with the wider barrier Newton sees them coming (a warm-started tracking
-frame of the 404K face: 6 factorisations and 19 Newton iterations where it took 9 and 32,
+bound then cuts it short; with the wider barrier Newton sees them coming (from rest, 13-14
+factorisations on the 404K face where it took 17-18, half the Newton iterations on the 20K face;
 docs/performance.md). The energy, the residual and the solution are the narrow barrier's alone.
 
 A pair couples nodes of the two lips that share no element, outside the finite-element sparsity.
@@ -371,14 +371,24 @@ class LipContact:
         The exact Hessian of a pair b'' grad d grad d^T + b' hess d has the negative part b' hess d
         (b' < 0), of size |b'| / d, which grows without bound as the pressed lips close in: the
         tangent then turns indefinite along the lips' sliding, and Newton's corrections there point
-        nowhere useful. Returns whether the matrix changed (the same on every rank)."""
+        nowhere useful. Plus the projected Hessian of the barrier of wider reach across the lips
+        (``newton_reach``). Returns whether the matrix changed (the same on every rank)."""
+        return self._add_newton_model(x, A, constrained, wide=True)
+
+    def add_projection(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray) -> bool:
+        """``add_newton_correction`` without the barrier of wider reach: the projection alone, for
+        a Newton that iterates the lip nodes to their own equilibrium (``relaxation``), which the
+        wider barrier's curvature would slow."""
+        return self._add_newton_model(x, A, constrained, wide=False)
+
+    def _add_newton_model(self, x: PETSc.Vec, A: PETSc.Mat, constrained: np.ndarray, wide: bool) -> bool:
         free = self.surface.free(constrained, x.getLocalSize())
         vertices = self.positions(x.array_r)
         state = self._state(vertices)
         change = None
         if len(state.collisions):
             change = (state.hessian(self.potential, projected=True) - state.hessian(self.potential)).tocsc()
-        if self.newton_potential is not None:
+        if wide and self.newton_potential is not None:
             wide = ipctk.NormalCollisions()
             wide.use_area_weighting = True
             wide.build(self.mesh, vertices, self.newton_potential.dhat)
