@@ -106,6 +106,19 @@ def _residual(problem, x):
     return b
 
 
+def _energy_gradient_matrix(problem, lips, x, add):
+    """The lips' energy and gradient at ``x``, and the matrix ``add`` (one of their methods
+    ``add_hessian``, ``add_newton_correction``) adds to a zero copy of the tangent, nothing held."""
+    b = x.duplicate()
+    b.set(0.0)
+    lips.add_gradient(x, b)
+    A = problem.solver.tangent.duplicate()
+    A.zeroEntries()
+    add(x, A, np.zeros(0, dtype=np.int32))
+    A.assemble()
+    return lips.energy(x), b, A
+
+
 def test_gradient_and_hessian_against_differences_of_the_energy(pressed):
     """Along a random direction of the free dofs: the lips' dE . v against central differences of
     their energy, and K v (the solver's tangent, flesh and lips) against central differences of
@@ -168,13 +181,8 @@ def test_a_state_seen_again_gives_what_a_fresh_lip_contact_gives(pressed, model)
     moved.axpy(0.2, step)
 
     def terms(contact, x):
-        b = x.duplicate()
-        b.set(0.0)
-        contact.add_gradient(x, b)
-        A = pressed.solver.tangent.duplicate()
-        A.zeroEntries()
-        contact.add_hessian(x, A, np.zeros(0, dtype=np.int32))
-        return contact.energy(x), b.array.copy(), A.norm(), contact.step_fraction(x, step, 1.0)
+        energy, b, A = _energy_gradient_matrix(pressed, contact, x, contact.add_hessian)
+        return energy, b.array.copy(), A.norm(), contact.step_fraction(x, step, 1.0)
 
     # The IPC Toolkit's threaded sums and candidate lists differ in their last bits and order from
     # call to call: one thread, from a state whose collision set the solve did not build.
@@ -225,20 +233,9 @@ def test_the_wider_reach_is_in_newtons_tangent_only(pressed, model):
     narrow = LipContact(pressed.V, *lip_facets(model, settings), replace(settings, newton_reach=0.0),
                         pressed.bone_blocks)
     wide, u = pressed.lips, pressed.u.vector
-    none = np.zeros(0, dtype=np.int32)
-
-    def terms(lips, add):
-        b = u.duplicate()
-        b.set(0.0)
-        lips.add_gradient(u, b)
-        A = pressed.solver.tangent.duplicate()
-        A.zeroEntries()
-        add(lips)(u, A, none)
-        A.assemble()
-        return lips.energy(u), b, A
-
     # (Equal up to the last bits of the IPC Toolkit's threaded sums.)
-    energies, gradients, hessians = zip(*(terms(lips, lambda lips: lips.add_hessian) for lips in (wide, narrow)))
+    energies, gradients, hessians = zip(*(_energy_gradient_matrix(pressed, lips, u, lips.add_hessian)
+                                          for lips in (wide, narrow)))
     assert energies[0] == pytest.approx(energies[1], rel=1e-12)
     gradients[0].axpy(-1.0, gradients[1])
     assert gradients[0].norm() <= 1e-12 * gradients[1].norm()
@@ -246,7 +243,7 @@ def test_the_wider_reach_is_in_newtons_tangent_only(pressed, model):
     difference.axpy(-1.0, hessians[1])
     assert difference.norm() <= 1e-12 * hessians[1].norm()
     # Newton's corrections: the wider reach adds pairs the narrow barrier does not have yet.
-    corrections = [terms(lips, lambda lips: lips.add_newton_correction)[2] for lips in (wide, narrow)]
+    corrections = [_energy_gradient_matrix(pressed, lips, u, lips.add_newton_correction)[2] for lips in (wide, narrow)]
     assert corrections[0].getInfo()["mallocs"] == 0  # no entry outside the tangent's pattern
     added = corrections[0].copy()
     added.axpy(-1.0, corrections[1])
