@@ -423,6 +423,46 @@ def test_the_jaw_carries_the_lining_but_not_the_lips(model):
     assert max(iterations[-2:]) < 100
 
 
+def test_a_push_out_through_the_lips_is_not_solved_from(model, monkeypatch):
+    """Before Newton starts from a predicted shape the teeth move to their new poses and push the
+    lining out of their way (``ContactPotential.move_to``), which knows nothing of the lips: on the
+    5K face's bilabial take with the head moving it took pressed lower-lip nodes 0.03 mm through the
+    upper lip, and Newton went on with the lips intersecting. Such a start is refused and the solve
+    goes on from the last equilibrium, and a load step of the continuation with such a start fails
+    as a failed solve would. Here the push-out takes the lower lip 0.05 mm up, once in each case."""
+    problem = FaceProblem(model, **truth_contact_options(model, "lips+teeth", where="test"))
+    activations, tmj, head = control_curves(model, "bilabial", 60, head_motion=False)
+
+    def frame(k):
+        return dict(activations=activations[k], cranium=head[k], jaw=jaw_pose(model.jaw, *tmj[k]))
+
+    for k in (5, 6):
+        assert problem.solve(**frame(k)).converged
+    lips, teeth = problem.lips, problem.teeth_contact
+    assert lips.min_distance(problem.u.x.array) < lips.dhat  # pressed
+    push_out = teeth.push_out
+    lower = np.isin(lips.surface.owned_nodes, np.setdiff1d(lips.lower_nodes, lips.upper_nodes))
+
+    pushed = []
+
+    def through_the_lips(displacement, poses):
+        out, held = push_out(displacement, poses)
+        if not pushed:
+            out.reshape(-1, 3)[lips.surface.owned_blocks[lower]] += 0.05 * lips.up
+        pushed.append(lips.min_distance(out))
+        return out, held
+
+    monkeypatch.setattr(teeth, "push_out", through_the_lips)
+    monkeypatch.setattr(teeth, "closes_in", lambda displacement, old_poses, new_poses: True)
+    # From a predicted shape (the last equilibrium), then by continuation alone.
+    for k, guess in ((7, problem.u.x.array.copy()), (8, None)):
+        pushed.clear()
+        report = problem.solve(guess=guess, **frame(k))
+        assert report.converged
+        assert pushed[0] == 0.0 and len(pushed) > 1  # the first push went through, and was not solved from
+        assert lips.min_distance(problem.u.x.array) > 0.0 and lips.penetration(problem.u.x.array) == 0.0
+
+
 def test_simulate_with_the_contact_solver_options(model, shared_dir, monkeypatch):
     """``simulate --contact --contact-relaxation --newton-energy-tolerance 10``: the options reach
     the problem's solver, whose relaxation works on the lining the teeth push out, and the smile lands

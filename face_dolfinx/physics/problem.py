@@ -554,7 +554,10 @@ class FaceProblem:
                     self._put_objects(reached)
                     held += self._clear_objects(target)
             self.set_controls(target)
-            ok, iterations, why = self.solver.newton()
+            if self._lips_intersect():
+                ok, iterations, why = False, 0, "the lips intersect after the lining was pushed out"
+            else:
+                ok, iterations, why = self.solver.newton()
             if ok:
                 return SolveReport(True, held + iterations, 1, why, time.perf_counter() - began)
             log.info("Newton from the predicted shape failed (%s); continuing from the last "
@@ -577,11 +580,19 @@ class FaceProblem:
             # the skin, ObjectFeatureContact.push_out).
             self._put_objects(start.interpolate(target, t0))
             held.append(self._clear_objects(start.interpolate(target, t1), start.interpolate(target, t0)))
+            return not self._lips_intersect()
 
         report = self.solver.solve_continuation(controls_at, predictor=predictor,
                                                 max_halvings=max_halvings)
         self.set_controls(target)
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
+
+    def _lips_intersect(self) -> bool:
+        """Whether the lips intersect at the unknown. The push-out of the lining before the teeth's
+        or an object's move (``ContactPotential.move_to``) knows nothing of the lips: pressed
+        micrometres apart, a pushed lip node went through the other lip (5K face, the bilabial
+        take with the head moving), and Newton went on from there. Such a start is refused."""
+        return self.lips is not None and self.lips.min_distance(self.u.x.array) == 0.0
 
     def _lining_projected(self, equilibrium: np.ndarray, end: np.ndarray, poses) -> np.ndarray | None:
         """The prediction ``end`` with the lining nodes that it takes too close to the teeth (at
