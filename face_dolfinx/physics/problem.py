@@ -490,7 +490,8 @@ class FaceProblem:
         contact, only its part beyond the current equilibrium carried rigidly with the cranium's
         change; the lining it takes into the teeth moved out of them instead where that is
         small), else from the current equilibrium carried along the change of the cranium
-        frame. If that fails, continuation from the current equilibrium takes over, halving its
+        frame; a start whose lips intersect after the lining was pushed out of the teeth's or an
+        object's way counts as failed. If that fails, continuation from the current equilibrium takes over, halving its
         step at most ``max_halvings`` times before raising EquilibriumError. ``objects``: the
         poses of the contact objects (``AffineMap``s, world frame).
         """
