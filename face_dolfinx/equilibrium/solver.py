@@ -1021,7 +1021,8 @@ class QuasistaticSolver:
         ``set_controls(t)`` puts the controls (activations, Dirichlet values) at fraction t of the
         way; the unknown must hold the equilibrium for t = 0 on entry. ``predictor(t0, t1)``, if
         given, moves the unknown from the equilibrium at t0 towards a guess for t1 (e.g. the rigid
-        motion of the head). Tries t = 1 at once; on failure halves the step, and doubles it after
+        motion of the head); if it returns False it found no admissible start, and that load step
+        fails. Tries t = 1 at once; on failure halves the step, and doubles it after
         each success. Gives up when a step of 2^-max_halvings of the way fails: a walk that keeps
         progressing with occasional failures goes on (counting every failure stopped the 5x jaw
         opening of the stability study after six failures spread over its first third); and when
@@ -1037,10 +1038,12 @@ class QuasistaticSolver:
         while t < 1.0:
             creeping = creeping + 1 if step <= CREEP_STEP else 0
             target = min(1.0, t + step)
-            if predictor is not None:
-                predictor(t, target)
-            set_controls(target)
-            ok, iterations, why = self.newton()
+            if predictor is not None and predictor(t, target) is False:
+                # No admissible start for this load step: it fails as a failed solve would.
+                ok, iterations, why = False, 0, "the predictor found no admissible start"
+            else:
+                set_controls(target)
+                ok, iterations, why = self.newton()
             newton_total += iterations
             if ok:
                 t, steps_taken = target, steps_taken + 1

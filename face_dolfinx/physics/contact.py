@@ -786,22 +786,15 @@ class ContactPotential:
             solver.bcs.remove(condition)
             solver.controls_changed()
 
-    def move_to(self, poses, solver, lifted_blocks: np.ndarray | None = None) -> int:
+    def move_to(self, poses, solver) -> int:
         """Put the objects at ``poses``, first pushing the surface out of them (``push_out``) and
         carrying the flesh along by a Newton solve of ``solver`` (whose unknown is the displacement)
         with the pushed nodes and their neighbourhood held where they are put: that spreads the dent smoothly into the
         flesh, as the lifting of a bone motion does, where Newton from the bare push-out crawls in
-        collision-limited steps while the flesh pulls the dent back node by node. The pushed nodes
-        among the local dof blocks ``lifted_blocks`` (of any rank: the lips' nodes) are not put
-        there but reached by the solve's steps, left out of the objects' barrier meanwhile, and
-        the others among them are not held: the push-out knows nothing of the lips, and pressed
-        micrometres apart a lower-lip node put where the teeth pushed it went through the upper
-        lip (5K face, the bilabial take with the head moving); lifted, the lips' barrier bounds
-        its steps and pushes the other lip, free, ahead.
-        The state it leaves overlaps no object; the solve that follows releases the nodes. Returns
-        the Newton iterations it took."""
+        collision-limited steps while the flesh pulls the dent back node by node. The state it
+        leaves overlaps no object; the solve that follows releases the nodes. Returns the Newton
+        iterations it took."""
         u = solver.unknown
-        start = self.positions(u.x.array)
         u.x.array[:], nodes = self.push_out(u.x.array, poses)
         u.x.scatter_forward()
         self.set_poses(poses)
@@ -812,21 +805,11 @@ class ContactPotential:
         values.x.array[:] = u.x.array
         chosen = np.zeros(self.surface.num_nodes, dtype=bool)
         chosen[nodes] = True
-        lifted = np.zeros(self.surface.num_nodes, dtype=bool)
-        if lifted_blocks is not None:
-            lips = self.surface.flagged(lifted_blocks)
-            lifted = lips & (self.positions(u.x.array) != start).any(axis=1)
-            u.x.array[:] = self.surface.placed(u.x.array, start, np.flatnonzero(lifted))
-            # A lip node held still in the dent's neighbourhood would block the other lip's way.
-            chosen &= ~lips | lifted
         held = fem.dirichletbc(values, self.surface.local_blocks_of(chosen)[0])
         solver.bcs.append(held)
-        ignored = self.ignored
-        self.ignored = ignored | lifted
         try:
             return solver.newton()[1]
         finally:
-            self.ignored = ignored
             solver.bcs.remove(held)
             solver.controls_changed()
 

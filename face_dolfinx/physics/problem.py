@@ -555,7 +555,10 @@ class FaceProblem:
                     self._put_objects(reached)
                     held += self._clear_objects(target)
             self.set_controls(target)
-            ok, iterations, why = self.solver.newton()
+            if self._lips_intersect():
+                ok, iterations, why = False, 0, "the lips intersect after the lining was pushed out"
+            else:
+                ok, iterations, why = self.solver.newton()
             if ok:
                 return SolveReport(True, held + iterations, 1, why, time.perf_counter() - began)
             log.info("Newton from the predicted shape failed (%s); continuing from the last "
@@ -578,11 +581,21 @@ class FaceProblem:
             # the skin, ObjectFeatureContact.push_out).
             self._put_objects(start.interpolate(target, t0))
             held.append(self._clear_objects(start.interpolate(target, t1), start.interpolate(target, t0)))
+            return not self._lips_intersect()
 
         report = self.solver.solve_continuation(controls_at, predictor=predictor,
                                                 max_halvings=max_halvings)
         self.set_controls(target)
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
+
+    def _lips_intersect(self) -> bool:
+        """Whether the lips intersect at the unknown. The push-out of the lining before the teeth's
+        or an object's move (``ContactPotential.move_to``) knows nothing of the lips: pressed
+        micrometres apart, a pushed lip node went through the other lip (5K face, the bilabial
+        take with the head moving), and Newton went on from there. Such a start is refused. (Within
+        dhat: the collision set Newton's first evaluation builds at the same state, not a search
+        for the nearest pair of lips that stand apart.)"""
+        return self.lips is not None and self.lips.min_distance(self.u.x.array, reach=self.lips.dhat) == 0.0
 
     def _lining_projected(self, equilibrium: np.ndarray, end: np.ndarray, poses) -> np.ndarray | None:
         """The prediction ``end`` with the lining nodes that it takes too close to the teeth (at
@@ -645,22 +658,19 @@ class FaceProblem:
         take more of a lining node's gap than a collision-free step may and leave it closer than
         PUSH_GAP dhat (the bones closing in on the lining), else with the bone frames in the solve.
         Returns the Newton iterations it took."""
-        # The lips' nodes are never put where a push-out or a carry takes the lining, which knows
-        # nothing of the other lip: the push-out's are lifted by the solve's steps, which the lips'
-        # barrier bounds, and the carry leaves them free.
-        lips = self.lips.surface.local_blocks if self.lips is not None else None
-        iterations = self.contact.move_to(controls.objects, self.solver, lips) if self.contact is not None else 0
+        iterations = self.contact.move_to(controls.objects, self.solver) if self.contact is not None else 0
         if self.teeth_contact is not None and before is not None and not before.jaw.same_as(controls.jaw):
             self.set_controls(controls)
             # The unknown went along the cranium's change already: so did the teeth it rests on.
             change = controls.cranium.compose(before.cranium.inverse())
             self.teeth_contact.set_poses(tuple(change.compose(pose) for pose in self.teeth_poses(before)))
+            lips = self.lips.surface.local_blocks if self.lips is not None else None
             return iterations + self.teeth_contact.carry(self.teeth_poses(controls), self.solver, CARRY_REACH,
                                                          free_blocks=lips)
         if self.teeth_contact is not None:
             poses = self.teeth_poses(controls)
             if self.teeth_contact.closes_in(self.u.x.array, self.teeth_contact.poses, poses):
-                iterations += self.teeth_contact.move_to(poses, self.solver, lips)
+                iterations += self.teeth_contact.move_to(poses, self.solver)
         return iterations
 
     def active_force(self, muscle: int, out: PETSc.Vec | None = None) -> PETSc.Vec:
