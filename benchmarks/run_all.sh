@@ -100,6 +100,12 @@ record $RESULTS/contact/newton_reach_default_5k_np1.jsonl $PYTHON benchmarks/con
   --tets 5000 --head-motion --frames 30 --variants no-contact contact contact+narrow-newton-lips
 # (push_out_through_lips_5k_np1 is the same 5K command at the commit in its manifest entry, which
 # solved from starts whose lips the push-out of the lining had taken through each other.)
+# The IPC Toolkit on one thread per MPI rank (face_dolfinx.physics.contact).
+record $RESULTS/contact/ipc_one_thread_20k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 20000 --head-motion --frames 30 --variants no-contact contact contact+narrow-newton-lips
+record $RESULTS/contact/ipc_one_thread_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact \
+  --max-seconds 2400 --abort-seconds 4000
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

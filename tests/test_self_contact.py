@@ -463,6 +463,24 @@ def test_a_push_out_through_the_lips_is_not_solved_from(model, monkeypatch):
         assert lips.min_distance(problem.u.x.array) > 0.0 and lips.penetration(problem.u.x.array) == 0.0
 
 
+def test_the_step_bound_stops_short_of_intersecting_lips(pressed, monkeypatch):
+    """The lips' step bound is the IPC Toolkit's collision-free step (CCD), and also stops short
+    of an end where the lips intersect: a CCD that let a step through (here one that says every
+    step is free) is caught. The step takes the pressed lower lip 0.01 mm up, through the upper lip."""
+    lips = pressed.lips
+    u = pressed.u.x.array
+    lower = np.isin(lips.surface.owned_nodes, np.setdiff1d(lips.lower_nodes, lips.upper_nodes))
+    end = u.copy()
+    end.reshape(-1, 3)[lips.surface.owned_blocks[lower]] += 0.01 * lips.up
+    fraction = lips.admissible_fraction(u, end)
+    assert 0.0 < fraction < 1.0
+    monkeypatch.setattr(ipctk, "compute_collision_free_stepsize", lambda *args, **kwargs: 1.0)
+    missed = lips.admissible_fraction(u, end)
+    assert 0.0 < missed < 1.0
+    stop = u + missed * (end - u)
+    assert lips.min_distance(stop) > 0.0 and lips.min_distance(u + 2.0 * missed * (end - u)) == 0.0
+
+
 def test_simulate_with_the_contact_solver_options(model, shared_dir, monkeypatch):
     """``simulate --contact --contact-relaxation --newton-energy-tolerance 10``: the options reach
     the problem's solver, whose relaxation works on the lining the teeth push out, and the smile lands

@@ -40,12 +40,6 @@ from dolfinx import fem, geometry
 from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
 
-# Under MPI each rank has a core: the IPC Toolkit's own threads (TBB, one per core) would
-# oversubscribe them, and its threaded sums differ in their last bits from call to call, so that
-# two runs of one solve on two ranks could take different Newton paths. One thread per rank.
-if MPI.COMM_WORLD.size > 1:
-    ipctk.set_num_threads(1)
-
 # Along a Newton step or line-search segment no node may lose more than this fraction of its gap
 # (IPC's conservative rescaling of the time of impact, 0.8, is the same bound for a plane).
 CCD_KEEP = 0.8

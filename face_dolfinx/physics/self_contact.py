@@ -67,6 +67,9 @@ CCD_KEEP = 0.8
 # the same step fractions (benchmarks/lip_ccd.py, docs/contact.md).
 NARROW_PHASE = ipctk.AdditiveCCD()
 
+# Halvings of a collision-free bound whose end still has the lips intersecting, before it is 0.
+INTERSECTION_HALVINGS = 30
+
 # Newton iterations a solve with lip contact may take before continuation takes over.
 LIP_NEWTON_ITERATIONS = 100
 
@@ -455,6 +458,13 @@ class LipContact:
         if 2.0 * np.linalg.norm(v1 - v0, axis=1).max(initial=0.0) > CCD_KEEP * distance:
             fraction = float(ipctk.compute_collision_free_stepsize(self.mesh, v0, v1, (1.0 - CCD_KEEP) * distance,
                                                                     narrow_phase_ccd=NARROW_PHASE))
+            # The bound also stops short of an end where the lips intersect: the relaxation of
+            # pressed lips on 2 ranks was once seen to try such a point within the CCD's bound,
+            # and from there every later bound let it be (docs/contact.md, "A missed crossing").
+            halvings = 0
+            while distance > 0.0 and fraction > 0.0 and ipctk.has_intersections(self.mesh, v0 + fraction * (v1 - v0)):
+                halvings += 1
+                fraction = 0.5 * fraction if halvings < INTERSECTION_HALVINGS else 0.0
         return self.comm.allreduce(fraction, op=MPI.MIN)
 
 
