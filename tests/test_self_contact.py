@@ -119,6 +119,12 @@ def _energy_gradient_matrix(problem, lips, x, add):
     return lips.energy(x), b, A
 
 
+def _lower_lip_blocks(lips) -> np.ndarray:
+    """This rank's owned dof blocks of the nodes on the lower lip only (not its corners)."""
+    lower = np.isin(lips.surface.owned_nodes, np.setdiff1d(lips.lower_nodes, lips.upper_nodes))
+    return lips.surface.owned_blocks[lower]
+
+
 def test_gradient_and_hessian_against_differences_of_the_energy(pressed):
     """Along a random direction of the free dofs: the lips' dE . v against central differences of
     their energy, and K v (the solver's tangent, flesh and lips) against central differences of
@@ -441,14 +447,14 @@ def test_a_push_out_through_the_lips_is_not_solved_from(model, monkeypatch):
     lips, teeth = problem.lips, problem.teeth_contact
     assert lips.min_distance(problem.u.x.array) < lips.dhat  # pressed
     push_out = teeth.push_out
-    lower = np.isin(lips.surface.owned_nodes, np.setdiff1d(lips.lower_nodes, lips.upper_nodes))
+    lower = _lower_lip_blocks(lips)
 
     pushed = []
 
     def through_the_lips(displacement, poses):
         out, held = push_out(displacement, poses)
         if not pushed:
-            out.reshape(-1, 3)[lips.surface.owned_blocks[lower]] += 0.05 * lips.up
+            out.reshape(-1, 3)[lower] += 0.05 * lips.up
         pushed.append(lips.min_distance(out))
         return out, held
 
@@ -469,9 +475,8 @@ def test_the_step_bound_stops_short_of_intersecting_lips(pressed, monkeypatch):
     step is free) is caught. The step takes the pressed lower lip 0.01 mm up, through the upper lip."""
     lips = pressed.lips
     u = pressed.u.x.array
-    lower = np.isin(lips.surface.owned_nodes, np.setdiff1d(lips.lower_nodes, lips.upper_nodes))
     end = u.copy()
-    end.reshape(-1, 3)[lips.surface.owned_blocks[lower]] += 0.01 * lips.up
+    end.reshape(-1, 3)[_lower_lip_blocks(lips)] += 0.01 * lips.up
     fraction = lips.admissible_fraction(u, end)
     assert 0.0 < fraction < 1.0
     monkeypatch.setattr(ipctk, "compute_collision_free_stepsize", lambda *args, **kwargs: 1.0)

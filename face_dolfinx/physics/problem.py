@@ -592,10 +592,8 @@ class FaceProblem:
         """Whether the lips intersect at the unknown. The push-out of the lining before the teeth's
         or an object's move (``ContactPotential.move_to``) knows nothing of the lips: pressed
         micrometres apart, a pushed lip node went through the other lip (5K face, the bilabial
-        take with the head moving), and Newton went on from there. Such a start is refused. (Within
-        dhat: the collision set Newton's first evaluation builds at the same state, not a search
-        for the nearest pair of lips that stand apart.)"""
-        return self.lips is not None and self.lips.min_distance(self.u.x.array, reach=self.lips.dhat) == 0.0
+        take with the head moving), and Newton went on from there. Such a start is refused."""
+        return self.lips is not None and self.lips.intersects(self.u.x.array)
 
     def _lining_projected(self, equilibrium: np.ndarray, end: np.ndarray, poses) -> np.ndarray | None:
         """The prediction ``end`` with the lining nodes that it takes too close to the teeth (at

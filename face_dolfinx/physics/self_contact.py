@@ -254,6 +254,10 @@ class LipContact:
         intersect), or ``reach`` if none is closer than that."""
         return self._min_distance_at(self.positions(displacement), reach)
 
+    def intersects(self, displacement: np.ndarray) -> bool:
+        """Whether any two lip triangles intersect at ``displacement`` (the same on every rank)."""
+        return self._state(self.positions(displacement)).intersects
+
     def _min_distance_at(self, vertices: np.ndarray, reach: float) -> float:
         state = self._state(vertices)
         if state.intersects:
@@ -461,10 +465,13 @@ class LipContact:
             # The bound also stops short of an end where the lips intersect: the relaxation of
             # pressed lips on 2 ranks was once seen to try such a point within the CCD's bound,
             # and from there every later bound let it be (docs/contact.md, "A missed crossing").
-            halvings = 0
-            while distance > 0.0 and fraction > 0.0 and ipctk.has_intersections(self.mesh, v0 + fraction * (v1 - v0)):
-                halvings += 1
-                fraction = 0.5 * fraction if halvings < INTERSECTION_HALVINGS else 0.0
+            if distance > 0.0:
+                for _ in range(INTERSECTION_HALVINGS):
+                    if not ipctk.has_intersections(self.mesh, v0 + fraction * (v1 - v0)):
+                        break
+                    fraction *= 0.5
+                else:
+                    fraction = 0.0
         return self.comm.allreduce(fraction, op=MPI.MIN)
 
 
