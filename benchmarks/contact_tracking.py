@@ -64,15 +64,16 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # ``LipContactSettings`` default (the truth keeps the default), and the tangent's pattern holding every pair
 # of lip nodes within WIDE_PATTERN_RADIUS of each other at rest, of one lip or both, instead of
 # ``LipContact.coupled_blocks``'s, and Newton's tangent without the lips' barrier of wider reach
-# (``LipContactSettings.newton_reach`` 0).
+# (``LipContactSettings.newton_reach`` 0), and a Gauss-Newton prediction cut short as a whole
+# where it flattens cells or lets the lips touch, not node by node (``FaceProblem.bound_prediction_locally``).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
              "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
-             "narrow-newton-lips")
+             "narrow-newton-lips", "cut-whole")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
             "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
-            "contact+narrow-newton-lips")
+            "contact+narrow-newton-lips", "contact+cut-whole")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
@@ -178,6 +179,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         teeth.relative_fraction = lambda start, end, end_poses: relative(start, end, teeth.poses)
     if "cut-head" in ablations:
         problem.carry_head = False
+    if "cut-whole" in ablations:
+        problem.bound_prediction_locally = False
     if "cut-lining" in ablations:
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "residual-refresh" in ablations:

@@ -298,6 +298,9 @@ class FaceProblem:
         # Whether a prediction with lip or teeth contact starts from the equilibrium carried with
         # the head (``_carried_with_head``); False only to measure it.
         self.carry_head = True
+        # Whether a prediction that would flatten cells or let the lips touch is cut short node by
+        # node (``_bounded_locally``) before it is cut as a whole; False only to measure it.
+        self.bound_prediction_locally = True
         energy_terms = tuple(term for term in (self.contact, self.teeth_contact, self.lips) if term is not None)
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
         # closed by the orbicularis oris at 1): Newton is given room before continuation.
@@ -507,6 +510,8 @@ class FaceProblem:
             equilibrium = self.u.x.array.copy()
             origin = self._carried_with_head(start, target)
             carried = equilibrium if origin is start else self.u.x.array.copy()
+            if self.bound_prediction_locally:
+                guess = self._bounded_locally(carried, guess)
             # A long linear prediction can invert elements: pull it back towards the equilibrium.
             fraction = self.solver.inversion_guard.step_fraction(carried, carried - guess)
             cuts = [("inversion guard", fraction)]
@@ -587,6 +592,32 @@ class FaceProblem:
                                                 max_halvings=max_halvings)
         self.set_controls(target)
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
+
+    def _bounded_locally(self, carried: np.ndarray, guess: np.ndarray) -> np.ndarray:
+        """The prediction ``guess`` (from ``carried``) cut short only where it flattens cells or
+        takes the lips into each other: the lips' nodes go the collision-free fraction of their way,
+        then every vertex of a cell below the inversion guard's bound half as far, round after round
+        (``InversionGuard.node_scales``), the bones' nodes all the way. The exact Jacobian's
+        prediction can be huge on a few lining nodes by the incisors' edge, where the tangent is
+        nearly singular, and pressed lips allow their nodes little way: cut as a whole for them,
+        the prediction took the whole face 2-6 % of its way (404K face, docs/performance.md).
+        ``guess`` itself where nothing is cut, or where the bones' nodes would flatten a cell."""
+        step = guess - carried
+        guard = self.solver.inversion_guard
+        lips = self.lips.admissible_fraction(carried, guess) if self.lips is not None else 1.0
+        if lips == 1.0 and guard.step_fraction(carried, -step) == 1.0:
+            return guess
+        scales = np.ones(len(self.dof_coordinates))
+        if lips < 1.0:
+            scales[self.lips.surface.owned_blocks] = lips
+        scales = guard.node_scales(carried, step, scales, self.bone_blocks)
+        if scales is None:
+            return guess
+        owned = scales[:self.V.dofmap.index_map.size_local]
+        log.debug("prediction cut short node by node: %d nodes (lips' %.3g), down to %.3g of the way",
+                  self.comm.allreduce(int(np.count_nonzero(owned < 1.0))), lips,
+                  self.comm.allreduce(float(owned.min(initial=1.0)), op=MPI.MIN))
+        return carried + (scales[:, None] * step.reshape(-1, 3)).reshape(-1)
 
     def _lips_intersect(self) -> bool:
         """Whether the lips intersect at the unknown. The push-out of the lining before the teeth's
