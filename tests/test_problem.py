@@ -15,7 +15,7 @@ import dolfinx.fem.petsc as fem_petsc
 from face_dolfinx.model.bones import AffineMap, jaw_pose, rigid_map, rotation
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.points import PointEvaluator
-from face_dolfinx.physics.problem import Controls, FaceProblem
+from face_dolfinx.physics.problem import BLEND_WIDTHS, Controls, FaceProblem
 from slab import slab_model
 
 
@@ -149,6 +149,47 @@ def test_rigid_head_motion_is_exact_and_cheap():
     after = X + p.u.x.array.reshape(-1, 3)
     assert report.newton_iterations <= 1
     assert np.abs(after - head.apply(before)).max() < 1e-8
+
+
+def test_a_prediction_that_flattens_a_few_cells_is_cut_short_around_them_only():
+    """A Gauss-Newton prediction can be huge on a few nodes (where the tangent is nearly
+    singular): here the next equilibrium with one inner node moved 40 mm through its neighbours.
+    Newton starts from the prediction beyond the widest blend around that node's cells, from
+    less than an eighth of the way at that node, with no cell flattened, and reaches the
+    equilibrium; cut short as a whole (``bound_prediction_locally`` off) it starts a sixteenth of
+    the way everywhere."""
+    p = FaceProblem(slab_model())
+    p.solve(activations=[0.2, 0.1, 0.3])
+    start, start_controls = p.u.x.array.copy(), p.controls.copy()
+    p.solve(activations=[0.8, 0.6, 0.9])
+    target = p.u.x.array.copy()
+    distance = np.linalg.norm(p.dof_coordinates - [20.0, 10.0, 5.0], axis=1)
+    guess = target.copy()
+    guess.reshape(-1, 3)[distance < 1e-8, 0] += 40.0
+    newton, starts = p.solver.newton, []
+
+    def recorded():
+        starts.append(p.u.x.array.copy())
+        return newton()
+
+    p.solver.newton = recorded
+    comm = MPI.COMM_WORLD
+    for local in (True, False):
+        p.adopt(start_controls, start)
+        p.bound_prediction_locally = local
+        report = p.solve(activations=[0.8, 0.6, 0.9], guess=guess)
+        assert report.converged and report.load_steps == 1
+        assert np.abs(p.u.x.array - target).max() < 1e-4
+        assert p.solver.inversion_guard.min_ratio(starts[-1]) >= p.solver.inversion_guard.min_volume_ratio
+        way = np.linalg.norm((starts[-1] - start).reshape(-1, 3), axis=1) / np.linalg.norm(
+            (guess - start).reshape(-1, 3), axis=1).clip(1e-12)
+        far = distance > np.sqrt(3 * 5.0 ** 2) + max(BLEND_WIDTHS)
+        assert comm.allreduce(float(way[distance < 1e-8].max(initial=0.0)), op=MPI.MAX) < 0.125
+        if local:
+            assert comm.allreduce(float(np.abs(starts[-1] - guess).reshape(-1, 3)[far].max(initial=0.0)),
+                                  op=MPI.MAX) < 1e-12
+        else:
+            assert comm.allreduce(float(way[far].max(initial=0.0)), op=MPI.MAX) <= 0.0625 + 1e-12
 
 
 def test_bad_activations_are_rejected_with_names(problem):

@@ -1,14 +1,16 @@
 """The solver's parts that can be tested alone: the factorisation-reuse policy on scripted Newton
 iterations, the PETSc options a solver writes under its prefix, Newton on a tangent whose exact
-part is indefinite (a double well), and when continuation gives up (a scripted Newton)."""
+part is indefinite (a double well), when continuation gives up (a scripted Newton), and the
+cells the inversion guard finds a step flattening."""
 import re
 
 from mpi4py import MPI
 import numpy as np
 from petsc4py import PETSc
 import pytest
+from dolfinx import fem
 
-from face_dolfinx.equilibrium.solver import FactorReusePolicy, PetscOptionsPrefix, QuasistaticSolver
+from face_dolfinx.equilibrium.solver import FactorReusePolicy, InversionGuard, PetscOptionsPrefix, QuasistaticSolver
 from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity
 from slab import slab_model
@@ -230,6 +232,27 @@ def test_a_factorisation_that_meets_a_zero_pivot_is_made_again_with_pivoting():
     assert sensitivity.factor() == 0.0
     assert np.abs(sensitivity.activation_columns() - expected).max() <= 1e-8 * np.abs(expected).max()
     assert solver.pivoting
+
+
+def test_the_inversion_guard_names_the_vertices_of_the_cells_a_step_flattens():
+    """A step that moves the slab 2 mm and one inner node 30 mm more, through its neighbours: the
+    guard cuts it as a whole to an eighth or less (``step_fraction``), and the vertices of the
+    cells it flattens (``flattened_blocks``) are that node and nodes of its cells only; the
+    translation alone flattens none."""
+    V = fem.VectorFunctionSpace(slab_model().mesh, ("CG", 1))
+    guard = InversionGuard(V)
+    X = V.tabulate_dof_coordinates()[:, :3]
+    distance = np.linalg.norm(X - [20.0, 10.0, 5.0], axis=1)
+    translation = np.tile([2.0, 0.0, 0.0], (len(X), 1))
+    step = translation.copy()
+    step[distance < 1e-8, 0] += 30.0
+    at_rest = np.zeros(step.size)
+    comm = MPI.COMM_WORLD
+    assert guard.step_fraction(at_rest, -step.reshape(-1)) <= 0.125
+    flattened = guard.flattened_blocks(at_rest, step.reshape(-1))
+    assert comm.allreduce(bool(np.any(distance[flattened] < 1e-8)), op=MPI.LOR)
+    assert comm.allreduce(float(distance[flattened].max(initial=0.0)), op=MPI.MAX) < np.sqrt(3 * 5.0 ** 2) + 1e-8
+    assert comm.allreduce(len(guard.flattened_blocks(at_rest, translation.reshape(-1)))) == 0
 
 
 def test_a_factor_is_not_reused_under_other_dirichlet_conditions():

@@ -63,7 +63,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 import numpy as np
 import ufl
-from dolfinx import fem, la
+from dolfinx import fem
 import dolfinx.fem.petsc as fem_petsc
 from dolfinx.fem.assemble import pack_coefficients
 
@@ -233,41 +233,13 @@ class InversionGuard:
             fraction *= 0.5
         return fraction
 
-    def node_scales(self, displacement: np.ndarray, step: np.ndarray, scales: np.ndarray,
-                    held: np.ndarray) -> np.ndarray | None:
-        """Fractions of ``step`` per node (block) such that displacement + scales step keeps every
-        cell above the bound of ``step_fraction``: the fractions of the vertices of every cell that
-        falls below it are halved, round after round, the ``held`` blocks' kept; ``scales`` (the
-        owned blocks read) are where that starts. None if a cell is still below the bound after
-        ``max_halvings`` rounds. A step that flattens a few cells is then cut short there only, not
-        as a whole (``FaceProblem.solve``'s prediction)."""
-        index_map = self.space.dofmap.index_map
-        owned = index_map.size_local
-        flags = la.vector(index_map)
-        scales = scales.copy()
-        keep = np.zeros(owned, dtype=bool)
-        keep[held[held < owned]] = True
-
-        def share(values):  # the owners' values to the ghosts
-            flags.array[:owned] = values[:owned]
-            flags.scatter_forward()
-            values[owned:] = flags.array[owned:]
-
-        share(scales)
+    def flattened_blocks(self, displacement: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """Local blocks (ghosts included) of the vertices of the guarded cells that displacement +
+        step takes below the bound of ``step_fraction`` (on this rank's cells)."""
         now = self.min_ratio(displacement)
         bound = min(self.min_volume_ratio, 0.5 * now)
-        step = step.reshape(-1, 3)
-        for _ in range(self.max_halvings + 1):
-            points = self.rest_points + (displacement.reshape(-1, 3) + scales[:, None] * step)[self.vertex_blocks]
-            failing = _signed_volumes(points) / self.rest_volume < bound
-            if not self.comm.allreduce(bool(failing.any()), op=MPI.LOR):
-                return scales
-            flags.array[:] = 0.0
-            flags.array[np.unique(self.vertex_blocks[failing])] = 1.0
-            flags.scatter_reverse(la.ScatterMode.add)
-            scales[:owned][(flags.array[:owned] > 0.0) & ~keep] *= 0.5
-            share(scales)
-        return None
+        points = self.rest_points + (displacement + step).reshape(-1, 3)[self.vertex_blocks]
+        return np.unique(self.vertex_blocks[_signed_volumes(points) / self.rest_volume < bound])
 
 
 def widened_tangent(A: PETSc.Mat, form: fem.FormMetaClass, pairs: np.ndarray) -> PETSc.Mat:

@@ -35,6 +35,7 @@ import time
 from mpi4py import MPI
 from petsc4py import PETSc
 import numpy as np
+from scipy.spatial import cKDTree
 import ufl
 from dolfinx import fem
 from dolfinx import mesh as dolfinx_mesh
@@ -58,6 +59,9 @@ log = logging.getLogger(__name__)
 # mm: the farthest a Gauss-Newton prediction's lining node is moved out of the teeth
 # (``FaceProblem._lining_projected``) rather than the prediction cut short.
 PROJECTION_LIMIT = 0.5
+# mm: the widths, smallest first, over which a prediction cut short at some nodes returns to its
+# whole way (``FaceProblem._bounded_locally``); the first that flattens no cell is taken.
+BLEND_WIDTHS = (2.0, 4.0, 8.0, 16.0)
 
 
 @dataclass
@@ -595,29 +599,41 @@ class FaceProblem:
 
     def _bounded_locally(self, carried: np.ndarray, guess: np.ndarray) -> np.ndarray:
         """The prediction ``guess`` (from ``carried``) cut short only where it flattens cells or
-        takes the lips into each other: the lips' nodes go the collision-free fraction of their way,
-        then every vertex of a cell below the inversion guard's bound half as far, round after round
-        (``InversionGuard.node_scales``), the bones' nodes all the way. The exact Jacobian's
-        prediction can be huge on a few lining nodes by the incisors' edge, where the tangent is
-        nearly singular, and pressed lips allow their nodes little way: cut as a whole for them,
-        the prediction took the whole face 2-6 % of its way (404K face, docs/performance.md).
-        ``guess`` itself where nothing is cut, or where the bones' nodes would flatten a cell."""
+        takes the lips into each other: the lips' nodes go their collision-free fraction of the
+        way, the vertices of the cells it flattens the inversion guard's fraction, and the nodes
+        around them return to the whole way over a width of ``BLEND_WIDTHS`` (rest distance, a
+        smoothstep), the bones' nodes all the way. The exact Jacobian's prediction can be huge
+        on a few lining nodes by the incisors' edge, where the tangent is nearly singular, and
+        pressed lips allow their nodes little way: cut as a whole for them, the prediction took
+        the whole face 2-6 % of its way (404K face, docs/performance.md). ``guess`` itself where
+        nothing is cut, or where every width still flattens a cell."""
         step = guess - carried
         guard = self.solver.inversion_guard
         lips = self.lips.admissible_fraction(carried, guess) if self.lips is not None else 1.0
-        if lips == 1.0 and guard.step_fraction(carried, -step) == 1.0:
+        whole = guard.step_fraction(carried, -step)
+        if lips == 1.0 and whole == 1.0:
             return guess
-        scales = np.ones(len(self.dof_coordinates))
+        lagging = []  # (rest positions of nodes that lag, their fraction of the way)
         if lips < 1.0:
-            scales[self.lips.surface.owned_blocks] = lips
-        scales = guard.node_scales(carried, step, scales, self.bone_blocks)
-        if scales is None:
-            return guess
-        owned = scales[:self.V.dofmap.index_map.size_local]
-        log.debug("prediction cut short node by node: %d nodes (lips' %.3g), down to %.3g of the way",
-                  self.comm.allreduce(int(np.count_nonzero(owned < 1.0))), lips,
-                  self.comm.allreduce(float(owned.min(initial=1.0)), op=MPI.MIN))
-        return carried + (scales[:, None] * step.reshape(-1, 3)).reshape(-1)
+            lagging.append((self.lips.surface.rest, lips))
+        if whole < 1.0:
+            flattened = self.dof_coordinates[guard.flattened_blocks(carried, step)]
+            lagging.append((np.concatenate(self.comm.allgather(flattened)), whole))
+        distances = [(cKDTree(points).query(self.dof_coordinates)[0], fraction) for points, fraction in lagging]
+        for width in BLEND_WIDTHS:
+            scales = np.ones(len(self.dof_coordinates))
+            for distance, fraction in distances:
+                t = np.minimum(distance / width, 1.0)
+                scales = np.minimum(scales, fraction + (1.0 - fraction) * t * t * (3.0 - 2.0 * t))
+            scales[self.bone_blocks] = 1.0
+            bounded = carried + (scales[:, None] * step.reshape(-1, 3)).reshape(-1)
+            if guard.step_fraction(carried, carried - bounded) == 1.0:
+                log.debug("prediction cut short node by node over %g mm: %d nodes (lips %.3g, inversion guard %.3g)",
+                          width, self.comm.allreduce(int(np.count_nonzero(
+                              scales[:self.V.dofmap.index_map.size_local] < 1.0))), lips, whole)
+                return bounded
+        log.debug("prediction not cut short node by node: a blend over %g mm still flattens a cell", width)
+        return guess
 
     def _lips_intersect(self) -> bool:
         """Whether the lips intersect at the unknown. The push-out of the lining before the teeth's
