@@ -65,7 +65,7 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # of lip nodes within WIDE_PATTERN_RADIUS of each other at rest, of one lip or both, instead of
 # ``LipContact.coupled_blocks``'s, and Newton's tangent without the lips' barrier of wider reach
 # (``LipContactSettings.newton_reach`` 0), and a Gauss-Newton prediction cut short as a whole
-# where it flattens cells or lets the lips touch, not node by node (``FaceProblem.bound_prediction_locally``).
+# where it flattens a few cells, not around them only (``FaceProblem.bound_prediction_locally``).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
              "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
              "narrow-newton-lips", "cut-whole")

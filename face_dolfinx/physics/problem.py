@@ -59,9 +59,10 @@ log = logging.getLogger(__name__)
 # mm: the farthest a Gauss-Newton prediction's lining node is moved out of the teeth
 # (``FaceProblem._lining_projected``) rather than the prediction cut short.
 PROJECTION_LIMIT = 0.5
-# mm: the widths, smallest first, over which a prediction cut short at some nodes returns to its
-# whole way (``FaceProblem._bounded_locally``); the first that flattens no cell is taken.
+# mm: the widths, smallest first, over which a prediction cut short around a few nodes returns to
+# its whole way (``FaceProblem._bounded_locally``); the first that flattens no cell is taken.
 BLEND_WIDTHS = (2.0, 4.0, 8.0, 16.0)
+LOCAL_CUT_NODES = 64  # the most vertices of flattened cells for which it is cut short around them only
 
 
 @dataclass
@@ -302,8 +303,8 @@ class FaceProblem:
         # Whether a prediction with lip or teeth contact starts from the equilibrium carried with
         # the head (``_carried_with_head``); False only to measure it.
         self.carry_head = True
-        # Whether a prediction that would flatten cells or let the lips touch is cut short node by
-        # node (``_bounded_locally``) before it is cut as a whole; False only to measure it.
+        # Whether a prediction that would flatten a few cells is cut short around them
+        # (``_bounded_locally``) before it is cut as a whole; False only to measure it.
         self.bound_prediction_locally = True
         energy_terms = tuple(term for term in (self.contact, self.teeth_contact, self.lips) if term is not None)
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
@@ -493,14 +494,16 @@ class FaceProblem:
         """Equilibrium for the given controls (unspecified ones keep their values).
 
         Newton starts from ``guess`` (a dof array, e.g. the Gauss-Newton prediction X + dX/dc dc)
-        if given, pulled back where it would invert cells or break a contact (with lip or teeth
-        contact, only its part beyond the current equilibrium carried rigidly with the cranium's
-        change; the lining it takes into the teeth moved out of them instead where that is
-        small), else from the current equilibrium carried along the change of the cranium
-        frame; a start whose lips intersect after the lining was pushed out of the teeth's or an
-        object's way counts as failed. If that fails, continuation from the current equilibrium takes over, halving its
-        step at most ``max_halvings`` times before raising EquilibriumError. ``objects``: the
-        poses of the contact objects (``AffineMap``s, world frame).
+        if given, cut short around a few nodes where it would flatten cells
+        (``_bounded_locally``), then pulled back as a whole where it would still invert cells or
+        break a contact (with lip or teeth contact, only its part beyond the current
+        equilibrium carried rigidly with the cranium's change; the lining it takes into the teeth
+        moved out of them instead where that is small), else from the current equilibrium carried
+        along the change of the cranium frame; a start whose lips intersect after the lining was
+        pushed out of the teeth's or an object's way counts as failed. If that fails,
+        continuation from the current equilibrium takes over, halving its step at most
+        ``max_halvings`` times before raising EquilibriumError. ``objects``: the poses of the
+        contact objects (``AffineMap``s, world frame).
         """
         start = self.controls.copy()
         target = Controls(
@@ -598,39 +601,34 @@ class FaceProblem:
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
 
     def _bounded_locally(self, carried: np.ndarray, guess: np.ndarray) -> np.ndarray:
-        """The prediction ``guess`` (from ``carried``) cut short only where it flattens cells or
-        takes the lips into each other: the lips' nodes go their collision-free fraction of the
-        way, the vertices of the cells it flattens the inversion guard's fraction, and the nodes
-        around them return to the whole way over a width of ``BLEND_WIDTHS`` (rest distance, a
-        smoothstep), the bones' nodes all the way. The exact Jacobian's prediction can be huge
-        on a few lining nodes by the incisors' edge, where the tangent is nearly singular, and
-        pressed lips allow their nodes little way: cut as a whole for them, the prediction took
-        the whole face 2-6 % of its way (404K face, docs/performance.md). ``guess`` itself where
-        nothing is cut, or where every width still flattens a cell."""
+        """The prediction ``guess`` (from ``carried``) cut short around a few nodes where it
+        flattens cells: the vertices of those cells go the inversion guard's fraction of the way,
+        the nodes around them return to the whole way over a width of ``BLEND_WIDTHS`` (rest
+        distance, a smoothstep), the bones' nodes all the way. The exact Jacobian's prediction can
+        be huge on a few lining nodes by the incisors' edge, where the tangent is nearly singular:
+        cut as a whole for them, it took the whole face 6-25 % of its way (404K face,
+        docs/performance.md). ``guess`` itself where it flattens no cell, cells with more than
+        ``LOCAL_CUT_NODES`` vertices (a prediction wrong over a region, not at a few nodes), or
+        cells at every width."""
         step = guess - carried
         guard = self.solver.inversion_guard
-        lips = self.lips.admissible_fraction(carried, guess) if self.lips is not None else 1.0
         whole = guard.step_fraction(carried, -step)
-        if lips == 1.0 and whole == 1.0:
+        if whole == 1.0:
             return guess
-        lagging = []  # (rest positions of nodes that lag, their fraction of the way)
-        if lips < 1.0:
-            lagging.append((self.lips.surface.rest, lips))
-        if whole < 1.0:
-            flattened = self.dof_coordinates[guard.flattened_blocks(carried, step)]
-            lagging.append((np.concatenate(self.comm.allgather(flattened)), whole))
-        distances = [(cKDTree(points).query(self.dof_coordinates)[0], fraction) for points, fraction in lagging]
+        flattened = self.dof_coordinates[guard.flattened_blocks(carried, step)]
+        flattened = np.unique(np.concatenate(self.comm.allgather(flattened)), axis=0)
+        if len(flattened) > LOCAL_CUT_NODES:
+            log.debug("prediction not cut short node by node: it flattens cells with %d vertices", len(flattened))
+            return guess
+        distance = cKDTree(flattened).query(self.dof_coordinates)[0]
         for width in BLEND_WIDTHS:
-            scales = np.ones(len(self.dof_coordinates))
-            for distance, fraction in distances:
-                t = np.minimum(distance / width, 1.0)
-                scales = np.minimum(scales, fraction + (1.0 - fraction) * t * t * (3.0 - 2.0 * t))
+            ramp = np.minimum(distance / width, 1.0)
+            scales = whole + (1.0 - whole) * ramp * ramp * (3.0 - 2.0 * ramp)
             scales[self.bone_blocks] = 1.0
             bounded = carried + (scales[:, None] * step.reshape(-1, 3)).reshape(-1)
             if guard.step_fraction(carried, carried - bounded) == 1.0:
-                log.debug("prediction cut short node by node over %g mm: %d nodes (lips %.3g, inversion guard %.3g)",
-                          width, self.comm.allreduce(int(np.count_nonzero(
-                              scales[:self.V.dofmap.index_map.size_local] < 1.0))), lips, whole)
+                log.debug("prediction cut short around %d nodes over %g mm to %.3g of the way", len(flattened),
+                          width, whole)
                 return bounded
         log.debug("prediction not cut short node by node: a blend over %g mm still flattens a cell", width)
         return guess
