@@ -106,6 +106,11 @@ record $RESULTS/contact/ipc_one_thread_20k_np2.jsonl mpirun -n 2 $PYTHON benchma
 record $RESULTS/contact/ipc_one_thread_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact \
   --max-seconds 2400 --abort-seconds 4000
+# A prediction cut short around a few flattened cells only (FaceProblem.bound_prediction_locally);
+# local_prediction_404k_np2_rerun is the same command with --variants no-contact contact.
+record $RESULTS/contact/local_prediction_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact contact+cut-whole \
+  --max-seconds 2400 --abort-seconds 4000
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

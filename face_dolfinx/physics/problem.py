@@ -618,7 +618,7 @@ class FaceProblem:
         flattened = self.dof_coordinates[guard.flattened_blocks(carried, step)]
         flattened = np.unique(np.concatenate(self.comm.allgather(flattened)), axis=0)
         if len(flattened) > LOCAL_CUT_NODES:
-            log.debug("prediction not cut short node by node: it flattens cells with %d vertices", len(flattened))
+            log.debug("prediction not cut short around a few nodes: it flattens cells with %d vertices", len(flattened))
             return guess
         distance = cKDTree(flattened).query(self.dof_coordinates)[0]
         for width in BLEND_WIDTHS:
@@ -630,7 +630,7 @@ class FaceProblem:
                 log.debug("prediction cut short around %d nodes over %g mm to %.3g of the way", len(flattened),
                           width, whole)
                 return bounded
-        log.debug("prediction not cut short node by node: a blend over %g mm still flattens a cell", width)
+        log.debug("prediction not cut short around a few nodes: a blend over %g mm still flattens a cell", width)
         return guess
 
     def _lips_intersect(self) -> bool:
