@@ -111,6 +111,8 @@ record $RESULTS/contact/ipc_one_thread_404k_np2.jsonl mpirun -n 2 $PYTHON benchm
 record $RESULTS/contact/local_prediction_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 4 --variants no-contact contact contact+cut-whole \
   --max-seconds 2400 --abort-seconds 4000
+record $RESULTS/contact/local_prediction_20k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 20000 --head-motion --frames 30 --variants no-contact contact contact+cut-whole
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
