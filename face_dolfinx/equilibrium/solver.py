@@ -224,8 +224,7 @@ class InversionGuard:
     def step_fraction(self, displacement: np.ndarray, step: np.ndarray, largest: float = 1.0) -> float:
         """Largest ``largest`` * 2^-k such that displacement - that * step keeps every cell above
         the bound (or, if a cell is already below it, does not halve its volume again)."""
-        now = self.min_ratio(displacement)
-        bound = min(self.min_volume_ratio, 0.5 * now)
+        bound = self._bound(displacement)
         fraction = largest
         for _ in range(self.max_halvings):
             if self.min_ratio(displacement - fraction * step) >= bound:
@@ -236,10 +235,13 @@ class InversionGuard:
     def flattened_blocks(self, displacement: np.ndarray, step: np.ndarray) -> np.ndarray:
         """Local blocks (ghosts included) of the vertices of the guarded cells that displacement +
         step takes below the bound of ``step_fraction`` (on this rank's cells)."""
-        now = self.min_ratio(displacement)
-        bound = min(self.min_volume_ratio, 0.5 * now)
+        bound = self._bound(displacement)
         points = self.rest_points + (displacement + step).reshape(-1, 3)[self.vertex_blocks]
         return np.unique(self.vertex_blocks[_signed_volumes(points) / self.rest_volume < bound])
+
+    def _bound(self, displacement: np.ndarray) -> float:
+        """The volume ratio a step from ``displacement`` keeps every cell above."""
+        return min(self.min_volume_ratio, 0.5 * self.min_ratio(displacement))
 
 
 def widened_tangent(A: PETSc.Mat, form: fem.FormMetaClass, pairs: np.ndarray) -> PETSc.Mat:

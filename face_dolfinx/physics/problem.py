@@ -517,10 +517,12 @@ class FaceProblem:
             equilibrium = self.u.x.array.copy()
             origin = self._carried_with_head(start, target)
             carried = equilibrium if origin is start else self.u.x.array.copy()
+            # A long linear prediction can invert elements: cut it short around a few nodes, or
+            # pull it back towards the equilibrium as a whole.
             if self.bound_prediction_locally:
-                guess = self._bounded_locally(carried, guess)
-            # A long linear prediction can invert elements: pull it back towards the equilibrium.
-            fraction = self.solver.inversion_guard.step_fraction(carried, carried - guess)
+                guess, fraction = self._bounded_locally(carried, guess)
+            else:
+                fraction = self.solver.inversion_guard.step_fraction(carried, carried - guess)
             cuts = [("inversion guard", fraction)]
             # ... or let the lips pass through each other, or the lining into the teeth
             for label, term in (("lips", self.lips), ("teeth", self.teeth_contact), ("objects", self.contact)):
@@ -600,7 +602,7 @@ class FaceProblem:
         self.set_controls(target)
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
 
-    def _bounded_locally(self, carried: np.ndarray, guess: np.ndarray) -> np.ndarray:
+    def _bounded_locally(self, carried: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, float]:
         """The prediction ``guess`` (from ``carried``) cut short around a few nodes where it
         flattens cells: the vertices of those cells go the inversion guard's fraction of the way,
         the nodes around them return to the whole way over a width of ``BLEND_WIDTHS`` (rest
@@ -609,17 +611,18 @@ class FaceProblem:
         cut as a whole for them, it took the whole face 6-25 % of its way (404K face,
         docs/performance.md). ``guess`` itself where it flattens no cell, cells with more than
         ``LOCAL_CUT_NODES`` vertices (a prediction wrong over a region, not at a few nodes), or
-        cells at every width."""
+        cells at every width. With it the inversion guard's fraction of the way for the whole of
+        what is returned."""
         step = guess - carried
         guard = self.solver.inversion_guard
         whole = guard.step_fraction(carried, -step)
         if whole == 1.0:
-            return guess
+            return guess, whole
         flattened = self.dof_coordinates[guard.flattened_blocks(carried, step)]
         flattened = np.unique(np.concatenate(self.comm.allgather(flattened)), axis=0)
         if len(flattened) > LOCAL_CUT_NODES:
             log.debug("prediction not cut short around a few nodes: it flattens cells with %d vertices", len(flattened))
-            return guess
+            return guess, whole
         distance = cKDTree(flattened).query(self.dof_coordinates)[0]
         for width in BLEND_WIDTHS:
             ramp = np.minimum(distance / width, 1.0)
@@ -629,9 +632,9 @@ class FaceProblem:
             if guard.step_fraction(carried, carried - bounded) == 1.0:
                 log.debug("prediction cut short around %d nodes over %g mm to %.3g of the way", len(flattened),
                           width, whole)
-                return bounded
+                return bounded, 1.0
         log.debug("prediction not cut short around a few nodes: a blend over %g mm still flattens a cell", width)
-        return guess
+        return guess, whole
 
     def _lips_intersect(self) -> bool:
         """Whether the lips intersect at the unknown. The push-out of the lining before the teeth's
