@@ -58,7 +58,7 @@ tets = 9000
         assert (settings.fit.max_gn_steps, settings.newton_tolerance) == (5, 1e-3)
         assert (settings.reuse_factorization, settings.refresh_contraction, settings.fit.approximate_jacobian_within) \
             == (fast.reuse_factorization, fast.refresh_contraction, fast.fit.approximate_jacobian_within) \
-            == (True, 0.5, 0.3)
+            == (True, 0.5, 1.0)
         assert settings.line_search_iterations == fast.line_search_iterations == 3
     settings = tracking_settings(parse_arguments(["fit", "take.trc"])[0])
     assert (settings.reuse_factorization, settings.fit.approximate_jacobian_within, settings.fit.max_gn_steps) \

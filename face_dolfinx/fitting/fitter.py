@@ -22,6 +22,7 @@ import logging
 import math
 import time
 
+from mpi4py import MPI
 import numpy as np
 
 from face_dolfinx.equilibrium.solver import EquilibriumError
@@ -50,6 +51,7 @@ class FaceFitter:
         self.previous_activations = None
         self.frames_done = 0
         self._cached_jacobian = None  # (state, dof columns, marker columns) of the last GN step
+        self._jacobian_displacement = None  # the displacement it was computed at (for the log)
         self._root_weights = np.sqrt(markers.weights)
 
     # -- controls <-> problem -----------------------------------------------------------------
@@ -107,6 +109,14 @@ class FaceFitter:
         """The newest factor may serve a fresh Jacobian (``approximate_jacobian_within``)."""
         within = self.settings.approximate_jacobian_within
         return within > 0.0 and self.problem.solver.factor_distance(exact=False) <= within
+
+    def _distance_from(self, displacement: np.ndarray | None) -> float:
+        """Largest distance of a dof of the current displacement from ``displacement`` (NaN:
+        not known, as after ``restore``), over all ranks. Collective."""
+        if displacement is None:
+            return math.nan
+        local = float(np.abs(self.problem.u.x.array - displacement).max(initial=0.0))
+        return self.problem.comm.allreduce(local, op=MPI.MAX)
 
     def _reused_columns(self, state: ControlState):
         """The cached Jacobian turned by the change of the head's rotation since it was computed
@@ -179,11 +189,14 @@ class FaceFitter:
                 within = 0.0 if retry_exact else settings.approximate_jacobian_within
                 dofs, marker_columns, seconds, exact_jacobian = self._columns(state, within)
                 self._cached_jacobian = (state.copy(), dofs, marker_columns)
+                self._jacobian_displacement = base_u
                 fresh_jacobians += int(exact_jacobian)
                 jacobian_kind = "exact" if exact_jacobian else "approximate"
+                jacobian_distance = self.problem.solver.factor_distance(exact=False)
             else:
                 dofs, marker_columns, seconds = self._reused_columns(state)
                 exact_jacobian, jacobian_kind = False, "reused"
+                jacobian_distance = self._distance_from(self._jacobian_displacement)
             phases["sensitivities"] += seconds
             t0 = time.perf_counter()
             simulated = self.markers.positions(base_u, state.cranium)
@@ -207,8 +220,9 @@ class FaceFitter:
             full_step_good = candidate_objective < objective or (
                 not settings.line_search and math.isfinite(candidate_objective))
             if self.problem.comm.rank == 0:
-                log.debug("frame %d step %d: %s Jacobian, max |da| %.3f (%s), objective %.4g -> %.4g",
-                          frame, steps, jacobian_kind, np.abs(step[:self.problem.num_muscles]).max(),
+                log.debug("frame %d step %d: %s Jacobian (from a state %.3g mm away), max |da| %.3f (%s), "
+                          "objective %.4g -> %.4g", frame, steps, jacobian_kind, jacobian_distance,
+                          np.abs(step[:self.problem.num_muscles]).max(),
                           formulation.summary(), objective, candidate_objective)
             if full_step_good and not (settings.line_search and settings.line_search_every_step):
                 accepted, new_objective = candidate, candidate_objective
@@ -351,3 +365,4 @@ class FaceFitter:
         self._cached_jacobian = None if checkpoint.jacobian_state is None else (
             checkpoint.jacobian_state.copy(), checkpoint.jacobian_dofs.copy(),
             checkpoint.jacobian_markers.copy())
+        self._jacobian_displacement = None
