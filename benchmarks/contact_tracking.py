@@ -15,7 +15,8 @@ each variant on a problem of its own; a contact variant may switch off, by a "+"
 
 One JSON line per frame as it is done (rank 0): seconds of the fit, Newton iterations (every
 Newton solve of the frame, the teeth's push-out included), Gauss-Newton steps, factorisations,
-residual evaluations, seconds and calls inside the contact terms (energy, gradient, Hessian,
+residual evaluations, Newton corrections refused for climbing the energy (each solved again on a
+fresh factor), seconds and calls inside the contact terms (energy, gradient, Hessian,
 collision-free step and the pull-back of a Gauss-Newton prediction, timed by wrapping them; the
 largest over the ranks), lip barrier pairs and teeth contact nodes at the fitted equilibrium, the
 lips' smallest distance and penetration (also without contact: how far they pass), marker RMS and
@@ -76,7 +77,8 @@ VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "co
             "contact+narrow-newton-lips", "contact+cut-whole")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
-COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops")  # QuasistaticSolver's
+# QuasistaticSolver's counters, per frame
+COUNTERS = ("factorizations", "residual_evaluations", "linear_iterations", "energy_stops", "refused_exact_tangents")
 
 
 class TimedTerm:
