@@ -1,5 +1,5 @@
 """What lip and teeth contact cost in a warm-started tracking frame: the same frames tracked with
-contact off and on, one after the other in one run (docs/performance.md, "Contact in tracking").
+contact off and on in one run (docs/performance.md, "Contact in tracking").
 
 A bilabial take ("ma ba pa", ``capture/synthetic.py``: the orbicularis oris at 0.9 presses the
 lips together with the jaw closed, then an open vowel) of ``--take-frames`` frames at 60 Hz is
@@ -10,8 +10,10 @@ with 0.5 mm noise and no head motion (``--head-motion``: as in a capture); the s
 ``face_dolfinx.tracking.Tracker`` (the loop of ``run.py fit``, every frame written to a fit folder
 under ``--out``) with ``fit --fast`` (``PRESETS["fast"]``), first without contact, then with the
 lips' barrier and the teeth (``TrackingSettings(contact=True)``, what ``fit --contact`` builds),
-each variant on a problem of its own; a contact variant may switch off, by a "+" in its name, what
-``ABLATIONS`` lists.
+each variant on a problem of its own (with ``--interleave`` frame by frame in turn, every variant's
+problem built at once: a ratio of two variants' frames is then measured on the same stretch of the
+machine's time, whose speed varied by half from run to run); a contact variant may switch off, by
+a "+" in its name, what ``ABLATIONS`` lists.
 
 One JSON line per frame as it is done (rank 0): seconds of the fit, Newton iterations (every
 Newton solve of the frame, the teeth's push-out included), Gauss-Newton steps, factorisations,
@@ -38,6 +40,7 @@ import argparse
 import json
 import logging
 import pathlib
+import sys
 import threading
 import time
 
@@ -149,9 +152,52 @@ class OutOfTime(Exception):
     """A variant's ``--max-seconds`` are used up: no frame is started after the one just done."""
 
 
-def track_variant(name, model, capture, placement, truth, args, comm, began, rows: list) -> None:
+class Turns:
+    """Whose turn it is among the variants' threads (``--interleave``): one runs at a time (MPI
+    and PETSc see one thread at work, as in a sequential run), each for one frame, in the order of
+    ``--variants``; a variant that is done leaves the round. ``busy`` is each variant's seconds
+    with the turn (``used``: its own wall clock for ``--max-seconds``)."""
+
+    def __init__(self, names):
+        self.order = list(names)
+        self.current = self.order[0]
+        self.busy = dict.fromkeys(names, 0.0)
+        self._since = time.perf_counter()
+        self._condition = threading.Condition()
+
+    def used(self, name) -> float:
+        """Seconds ``name``, whose turn it is, has had the turn so far."""
+        return self.busy[name] + time.perf_counter() - self._since
+
+    def wait(self, name) -> None:
+        with self._condition:
+            self._condition.wait_for(lambda: self.current == name)
+            self._since = time.perf_counter()
+
+    def _hand_on(self, name, leaving: bool) -> None:
+        with self._condition:
+            self.busy[name] = self.used(name)
+            index = self.order.index(name)
+            following = self.order[index + 1:] + self.order[:index + (0 if leaving else 1)]
+            if leaving:
+                self.order.remove(name)
+            self.current = following[0] if following else None
+            self._condition.notify_all()
+
+    def pass_on(self, name) -> None:
+        """After a frame: the next variant's turn, then this one's again."""
+        self._hand_on(name, leaving=False)
+        self.wait(name)
+
+    def leave(self, name) -> None:
+        self._hand_on(name, leaving=True)
+
+
+def track_variant(name, model, capture, placement, truth, args, comm, began, rows: list,
+                  turns: Turns | None = None) -> None:
     """Track the stretch with contact off (``no-contact``) or on (``contact``), appending a row per
-    frame to ``rows`` as it is done."""
+    frame to ``rows`` as it is done; with ``turns``, one frame at a time in turn with the other
+    variants."""
     from face_dolfinx.physics.self_contact import LipContact, LipContactSettings, lip_facets
     from face_dolfinx.tracking import PRESETS, Tracker
 
@@ -244,8 +290,13 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         rows.append(row)
         if comm.rank == 0:
             print(json.dumps(row), flush=True)
-        if comm.allreduce(time.perf_counter() - start, op=MPI.MAX) > args.max_seconds:
+            if args.verbose and turns is not None:  # which variant the log's lines above were
+                print(f"{name}: frame {row['frame']} done", file=sys.stderr, flush=True)
+        used = time.perf_counter() - start if turns is None else turns.used(name)
+        if comm.allreduce(used, op=MPI.MAX) > args.max_seconds:
             raise OutOfTime
+        if turns is not None:
+            turns.pass_on(name)
 
     try:
         tracker.track(capture, placement, pathlib.Path(args.out) / name, overwrite=True, on_frame=report,
@@ -340,6 +391,10 @@ def main():
                         help="refresh contraction of the variant contact+slow-refresh")
     parser.add_argument("--stiff-lips", type=float, default=100.0, metavar="KPA",
                         help="the lips' barrier stiffness of the variant contact+stiff-lips")
+    parser.add_argument("--interleave", action="store_true",
+                        help="track the variants frame by frame in turn (every variant's problem built, one "
+                             "thread each, one at work at a time) instead of one after the other: the machine's "
+                             "slow and fast stretches then fall on all variants alike")
     parser.add_argument("--out", default="runs/contact_tracking", help="folder for the variants' fit folders")
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="log every Newton solve, Gauss-Newton step and pulled-back prediction to standard "
@@ -398,9 +453,29 @@ def main():
         watchdog = threading.Timer(max(limit - (time.perf_counter() - began), 0.0), abort)
         watchdog.daemon = True
         watchdog.start()
-    for name in args.variants:
-        rows[name] = []
-        track_variant(name, model, capture, placement, truth, args, comm, began, rows[name])
+    if args.interleave:
+        turns, failures = Turns(args.variants), []
+
+        def run(name):
+            turns.wait(name)
+            try:
+                track_variant(name, model, capture, placement, truth, args, comm, began, rows[name], turns)
+            except BaseException as error:  # re-raised below, once every variant is done
+                failures.append(error)
+            finally:
+                turns.leave(name)
+        threads = [threading.Thread(target=run, args=(name,)) for name in args.variants]
+        for name, thread in zip(args.variants, threads):
+            rows[name] = []
+            thread.start()
+        for thread in threads:
+            thread.join()
+        if failures:
+            raise failures[0]
+    else:
+        for name in args.variants:
+            rows[name] = []
+            track_variant(name, model, capture, placement, truth, args, comm, began, rows[name])
     if comm.rank == 0:
         watchdog.cancel()
         print(json.dumps(summary(rows, args, comm, model, setup_seconds)), flush=True)

@@ -113,6 +113,12 @@ record $RESULTS/contact/local_prediction_404k_np2.jsonl mpirun -n 2 $PYTHON benc
   --max-seconds 2400 --abort-seconds 4000
 record $RESULTS/contact/local_prediction_20k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 20000 --head-motion --frames 30 --variants no-contact contact contact+cut-whole
+# Approximate Jacobians from a factor within 1 mm (fit --fast); then a 30-frame stretch (lips closing,
+# opening, the vowel, the second closure).
+record $RESULTS/contact/approximate_within_1mm_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 6 --max-seconds 2400 --abort-seconds 4000
+record $RESULTS/contact/stretch_30_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 30 --max-seconds 2700 --abort-seconds 5600
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

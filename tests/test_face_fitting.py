@@ -95,7 +95,8 @@ def test_fast_tracking_settings_recover_a_noise_free_capture_rate_take(model, si
     frame reach the same bounds with fewer Jacobians than one per step, on frames 1/60 s apart
     (what the setting is for: with the whole scenario in 4 frames, 11.5 mm apart, one Jacobian
     per frame left 0.058 mm after 6 steps). Jacobians from a factor of a state within 0.3 mm
-    (``fit --fast``) reach them too, with fewer factorisations."""
+    (approximate Jacobians, which ``fit --fast`` takes within 1 mm) reach them too, with fewer
+    factorisations."""
     problem = FaceProblem(model)
     capture, truth = synthesize_take(problem, MarkerSet(problem, sites), model, "speech", n_frames=240,
                                      noise=0.0, seed=3, frames=range(80, 80 + FRAMES))
