@@ -51,7 +51,7 @@ class FaceFitter:
         self.previous_activations = None
         self.frames_done = 0
         self._cached_jacobian = None  # (state, dof columns, marker columns) of the last GN step
-        self._jacobian_displacement = None  # the displacement it was computed at (for the log)
+        self._jacobian_displacement = None  # the displacement it was computed for (for the log)
         self._root_weights = np.sqrt(markers.weights)
 
     # -- controls <-> problem -----------------------------------------------------------------
