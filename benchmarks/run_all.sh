@@ -119,6 +119,8 @@ record $RESULTS/contact/approximate_within_1mm_404k_np2.jsonl mpirun -n 2 $PYTHO
   --tets 400000 --truth-tets 20000 --head-motion --frames 6 --max-seconds 2400 --abort-seconds 4000
 record $RESULTS/contact/stretch_30_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 30 --max-seconds 2700 --abort-seconds 5600
+record $RESULTS/contact/interleaved_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 6 --interleave --max-seconds 1200 --abort-seconds 1260
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
