@@ -69,15 +69,17 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # of lip nodes within WIDE_PATTERN_RADIUS of each other at rest, of one lip or both, instead of
 # ``LipContact.coupled_blocks``'s, and Newton's tangent without the lips' barrier of wider reach
 # (``LipContactSettings.newton_reach`` 0), and a Gauss-Newton prediction cut short as a whole
-# where it flattens a few cells, not around them only (``FaceProblem.bound_prediction_locally``).
+# where it flattens a few cells, not around them only (``FaceProblem.bound_prediction_locally``), and
+# the factor kept by the residual's energy norm after a correction the collision-free bound cut
+# however short (``FactorReusePolicy.judged_step_bound`` 0).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
              "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
-             "narrow-newton-lips", "cut-whole")
+             "narrow-newton-lips", "cut-whole", "judged-cuts")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
             "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
-            "contact+narrow-newton-lips", "contact+cut-whole")
+            "contact+narrow-newton-lips", "contact+cut-whole", "contact+judged-cuts")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 # QuasistaticSolver's counters, per frame
@@ -233,6 +235,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "residual-refresh" in ablations:
         problem.solver.judge_factor_by_energy = False
+    if "judged-cuts" in ablations:
+        problem.solver.reuse_policy.judged_step_bound = 0.0
     if "slow-refresh" in ablations:
         problem.solver.reuse_policy.refresh_contraction = args.slow_refresh_contraction
     if "step-stop-only" in ablations:

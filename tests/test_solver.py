@@ -140,6 +140,36 @@ def test_with_energy_terms_a_slow_residual_cut_keeps_a_factor_whose_energy_norm_
     assert newton(plain, [(1e4, 1.0, False), (8e3, 1.0, False), (7e3, 1.0, False)]) == [False, True, False]
 
 
+def test_a_correction_cut_short_by_a_contact_bound_refreshes_the_old_factor_whatever_its_energy_norm():
+    """The old factor's correction that a collision-free bound cut below ``judged_step_bound`` of its
+    length (pairs that came close since the factor was made, whose barrier it does not hold) refreshes
+    it even where the residual's energy norm fell as a step of that length should; above that bound
+    the energy norm still keeps it."""
+    def kept_after(bound, energy_norm, judged_step_bound):
+        """Whether iteration 2, after a correction from the old factor cut to ``bound`` (the
+        residual norm 0.1 % lower, less than such a step achieves), keeps the factor whose
+        energy norm of the residual went from 1000 to ``energy_norm``."""
+        policy = FactorReusePolicy(across_solves=True, refresh_contraction=0.25, judged_step_bound=judged_step_bound)
+        policy.start_solve()
+        keeps = []
+        for k, norm in enumerate((1e4, 9.5e3, 9.49e3)):
+            policy.record_residual(k, norm)
+            keep = policy.keep_factor(k, None, lambda: energy_norm)
+            if not keep:
+                policy.factorised(in_newton=True)
+            keeps.append(keep)
+            policy.record_correction(1.0, bound=bound, release=1000.0)
+        return keeps[-1]
+
+    # A step of 0.01 of the way cuts the energy norm to (1 - 0.01 x 0.75)^2 = 0.985 of it: 980 is
+    # as expected.
+    assert kept_after(0.01, 980.0, judged_step_bound=0.0)
+    assert not kept_after(0.01, 980.0, judged_step_bound=0.2)
+    # 0.3 of the way: (1 - 0.3 x 0.75)^2 = 0.6.
+    assert kept_after(0.3, 500.0, judged_step_bound=0.2)
+    assert not kept_after(0.3, 700.0, judged_step_bound=0.2)
+
+
 def test_krylov_on_the_old_factor_refreshes_when_a_linear_solve_slows():
     policy = FactorReusePolicy(across_solves=True, krylov_refresh_iterations=8)
     steps = [(1e4, 1.0, False), (9e3, 1.0, False), (8e3, 1.0, False), (7e3, 1.0, False)]

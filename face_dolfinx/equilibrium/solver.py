@@ -98,6 +98,13 @@ DEFAULT_PETSC_OPTIONS = {
 # factor at the current iterate. A factorisation costs about as much as ten residual evaluations and
 # solves at 200K dofs, so a contraction of 0.25 or better pays for itself.
 REFRESH_CONTRACTION = 0.25
+# ... and a correction from the old factor that an energy term's collision-free bound cut below this
+# fraction of its length refreshes it whatever the residual's energy norm did: the factor does not hold
+# the barrier of the pairs that cut it (pairs that came close since it was made), and kept, its
+# corrections crawled, each cut shorter than the last (54 iterations at 0.002-0.16 of their length
+# in a 404K frame from rest, residual falling 1-3 % per iteration; docs/performance.md, "Cut
+# corrections refresh the factor").
+JUDGED_STEP_BOUND = 0.2
 
 # ``krylov_on_old_factor`` (with factorisation reuse): each Newton correction is solved by GMRES on
 # the exact tangent, applied matrix-free (a residual evaluation per product), preconditioned by the
@@ -347,7 +354,8 @@ class FactorReusePolicy:
     norm fell too slowly, the factor is still kept if that energy norm of the residual, squared
     (R . K0^-1 R), fell by the square of the ratio expected of the residual norm since the last
     correction of the same factor, or if that correction releases less than Newton's
-    ``energy_tolerance`` (the solve stops after it); never if it climbs the energy. The pressed lips'
+    ``energy_tolerance`` (the solve stops after it); never if it climbs the energy, nor after a
+    correction that the bound cut below ``judged_step_bound`` of its length. The pressed lips'
     barrier rows hold most of the residual's norm but, being stiff, little of its energy; a fresh
     tangent does not settle them faster (docs/performance.md, "Judged by energy").
 
@@ -357,8 +365,10 @@ class FactorReusePolicy:
 
     def __init__(self, across_solves: bool = False, refresh_contraction: float = REFRESH_CONTRACTION,
                  converging_correction: float = CONVERGING_CORRECTION,
-                 krylov_refresh_iterations: int = KRYLOV_REFRESH_ITERATIONS):
+                 krylov_refresh_iterations: int = KRYLOV_REFRESH_ITERATIONS,
+                 judged_step_bound: float = JUDGED_STEP_BOUND):
         self.across_solves = across_solves
+        self.judged_step_bound = judged_step_bound
         self.refresh_contraction = refresh_contraction
         self.converging_correction = converging_correction  # 0: a fresh factor every iteration
         self.krylov_refresh_iterations = krylov_refresh_iterations
@@ -411,7 +421,8 @@ class FactorReusePolicy:
             expected = 1.0 - self.step_bound * (1.0 - self.refresh_contraction)
             contracting = iteration > 0 and self.contraction <= expected
             if (not contracting and old_factor_release is not None and self.across_solves and iteration > 0
-                    and self.has_factor and not self.fresh_factor and not self.step_was_cut):
+                    and self.has_factor and not self.fresh_factor and not self.step_was_cut
+                    and self.step_bound >= self.judged_step_bound):
                 release = old_factor_release()  # the energy norm, squared, both by the same factor
                 contracting = 0.0 < release and (release <= expected**2 * self.release
                                                  or 0.5 * release < release_tolerance)
