@@ -121,6 +121,15 @@ record $RESULTS/contact/stretch_30_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks
   --tets 400000 --truth-tets 20000 --head-motion --frames 30 --max-seconds 2700 --abort-seconds 5600
 record $RESULTS/contact/interleaved_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 6 --interleave --max-seconds 1200 --abort-seconds 1260
+# An old factor refreshed after a correction the collision-free bound cut below 0.2 of its length
+# (FactorReusePolicy.judged_step_bound), against the variant without (contact+judged-cuts);
+# judged_cuts_404k_np2_rerun is the same command with --variants no-contact contact --max-seconds 1200
+# --abort-seconds 1500.
+record $RESULTS/contact/judged_cuts_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 6 --variants no-contact contact contact+judged-cuts \
+  --interleave --max-seconds 1500 --abort-seconds 1800
+record $RESULTS/contact/judged_cuts_20k_np1.jsonl $PYTHON benchmarks/contact_tracking.py \
+  --tets 20000 --head-motion --start 5 --frames 20 --variants no-contact contact contact+judged-cuts --interleave
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
