@@ -99,11 +99,11 @@ DEFAULT_PETSC_OPTIONS = {
 # solves at 200K dofs, so a contraction of 0.25 or better pays for itself.
 REFRESH_CONTRACTION = 0.25
 # ... and a correction from the old factor that an energy term's collision-free bound cut below this
-# fraction of its length refreshes it whatever the residual's energy norm did: the factor does not hold
-# the barrier of the pairs that cut it (pairs that came close since it was made), and kept, its
-# corrections crawled, each cut shorter than the last (54 iterations at 0.002-0.16 of their length
-# in a 404K frame from rest, residual falling 1-3 % per iteration; docs/performance.md, "Cut
-# corrections refresh the factor").
+# fraction of its length refreshes it unless the residual norm fell as a step of that length should,
+# whatever its energy norm did: the factor does not hold the barrier of the pairs that cut it (pairs
+# that came close since it was made), and kept, its corrections crept, each cut shorter than the
+# last (51 in a row at 0.002-0.16 of their length in a 404K frame from rest, the residual falling
+# 1-3 % per iteration; docs/performance.md, "Cut corrections refresh the factor").
 JUDGED_STEP_BOUND = 0.2
 
 # ``krylov_on_old_factor`` (with factorisation reuse): each Newton correction is solved by GMRES on
