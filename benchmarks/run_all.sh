@@ -124,10 +124,13 @@ record $RESULTS/contact/interleaved_404k_np2.jsonl mpirun -n 2 $PYTHON benchmark
 # An old factor refreshed after a correction the collision-free bound cut below 0.2 of its length
 # (FactorReusePolicy.judged_step_bound), against the variant without (contact+judged-cuts);
 # judged_cuts_404k_np2_rerun is the same command with --variants no-contact contact --max-seconds 1200
-# --abort-seconds 1500.
+# --abort-seconds 1500; then frames 5-14 (the closure and the lips' opening).
 record $RESULTS/contact/judged_cuts_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 6 --variants no-contact contact contact+judged-cuts \
   --interleave --max-seconds 1500 --abort-seconds 1800
+record $RESULTS/contact/judged_cuts_opening_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --frames 10 --variants no-contact contact \
+  --interleave --max-seconds 1800 --abort-seconds 2400
 record $RESULTS/contact/judged_cuts_20k_np1.jsonl $PYTHON benchmarks/contact_tracking.py \
   --tets 20000 --head-motion --start 5 --frames 20 --variants no-contact contact contact+judged-cuts --interleave
 
