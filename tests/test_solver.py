@@ -2,6 +2,7 @@
 iterations, the PETSc options a solver writes under its prefix, Newton on a tangent whose exact
 part is indefinite (a double well), when continuation gives up (a scripted Newton), and the
 cells the inversion guard finds a step flattening."""
+import math
 import re
 
 from mpi4py import MPI
@@ -16,19 +17,20 @@ from face_dolfinx.sensitivities.columns import EquilibriumSensitivity
 from slab import slab_model
 
 
-def newton(policy, iterations, linear_iterations=None):
+def newton(policy, iterations, linear_iterations=None, old_factor_release=None, release=math.inf):
     """Drive ``policy`` as QuasistaticSolver does through Newton iterations given as (residual
-    norm, correction size, step cut by the guard[, the energy terms' bound of the step]); returns,
-    per iteration, whether it kept the factor."""
+    norm, correction size, step cut by the guard[, the energy terms' bound of the step]); with
+    energy terms, ``old_factor_release`` gives R . K0^-1 R and every correction releases
+    ``release``. Returns, per iteration, whether it kept the factor."""
     kept = []
     policy.start_solve()
     for k, (norm, correction, cut, *bound) in enumerate(iterations):
         policy.record_residual(k, norm)
-        keep = policy.keep_factor(k, None if linear_iterations is None else linear_iterations[k])
+        keep = policy.keep_factor(k, None if linear_iterations is None else linear_iterations[k], old_factor_release)
         if not keep:
             policy.factorised(in_newton=True)
         kept.append(keep)
-        policy.record_correction(correction, cut, *bound)
+        policy.record_correction(correction, cut, *bound, release=release)
     return kept
 
 
@@ -150,16 +152,8 @@ def test_a_correction_cut_short_by_a_contact_bound_refreshes_the_old_factor_what
         residual norm 0.1 % lower, less than such a step achieves), keeps the factor whose
         energy norm of the residual went from 1000 to ``energy_norm``."""
         policy = FactorReusePolicy(across_solves=True, refresh_contraction=0.25, judged_step_bound=judged_step_bound)
-        policy.start_solve()
-        keeps = []
-        for k, norm in enumerate((1e4, 9.5e3, 9.49e3)):
-            policy.record_residual(k, norm)
-            keep = policy.keep_factor(k, None, lambda: energy_norm)
-            if not keep:
-                policy.factorised(in_newton=True)
-            keeps.append(keep)
-            policy.record_correction(1.0, bound=bound, release=1000.0)
-        return keeps[-1]
+        steps = [(norm, 1.0, False, bound) for norm in (1e4, 9.5e3, 9.49e3)]
+        return newton(policy, steps, old_factor_release=lambda: energy_norm, release=1000.0)[-1]
 
     # A step of 0.01 of the way cuts the energy norm to (1 - 0.01 x 0.75)^2 = 0.985 of it: 980 is
     # as expected.
