@@ -37,6 +37,7 @@ the whole run stops (summary line with what it has, then MPI abort) after ``--ab
         mpirun -n 2 python benchmarks/contact_tracking.py --tets 400000 --frames 4 --max-seconds 1800
 """
 import argparse
+from dataclasses import replace
 import json
 import logging
 import pathlib
@@ -71,15 +72,16 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # (``LipContactSettings.newton_reach`` 0), and a Gauss-Newton prediction cut short as a whole
 # where it flattens a few cells, not around them only (``FaceProblem.bound_prediction_locally``), and
 # the factor kept by the residual's energy norm after a correction the collision-free bound cut
-# however short (``FactorReusePolicy.judged_step_bound`` 0).
+# however short (``FactorReusePolicy.judged_step_bound`` 0), and a Gauss-Newton step's fresh Jacobian
+# from a factor of the exact tangent instead of Newton's (``FitSettings.fresh_jacobian_from_newton_tangent``).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
              "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
-             "narrow-newton-lips", "cut-whole", "judged-cuts")
+             "narrow-newton-lips", "cut-whole", "judged-cuts", "exact-fresh-jacobians")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
             "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
-            "contact+narrow-newton-lips", "contact+cut-whole", "contact+judged-cuts")
+            "contact+narrow-newton-lips", "contact+cut-whole", "contact+judged-cuts", "contact+exact-fresh-jacobians")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 # QuasistaticSolver's counters, per frame
@@ -209,6 +211,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
                                             newton_energy_tolerance=args.newton_energy_tolerance,
                                             refresh_contraction=args.refresh_contraction if contact else None,
                                             contact_relaxation=True if "relaxation" in ablations else None))
+    if "exact-fresh-jacobians" in ablations:
+        settings = replace(settings, fit=replace(settings.fit, fresh_jacobian_from_newton_tangent=False))
     lip_settings = LipContactSettings(where="--contact",
                                       stiffness=args.stiff_lips if "stiff-lips" in ablations else LipContactSettings.stiffness,
                                       newton_reach=0.0 if "narrow-newton-lips" in ablations else LipContactSettings.newton_reach)

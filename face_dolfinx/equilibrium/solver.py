@@ -848,20 +848,26 @@ class QuasistaticSolver:
         False: every term takes its Newton correction, near the solution too."""
         self.assemble_tangent(P)
         self._factor_conditions = tuple(self.bcs)
-        # A term may modify its Hessian for Newton's corrections (add_newton_correction); the
-        # factor of that matrix serves Newton, not the sensitivities (factor_distance).
-        exact, self._factor_has_exact_terms = True, False
-        for term in self.energy_terms:
-            if not hasattr(term, "add_newton_correction"):
-                continue
-            if not exact_terms or self._newton_corrections(term):
-                exact = not term.add_newton_correction(self.unknown.vector, P, self._constrained_dofs()) and exact
-            else:
-                self._factor_has_exact_terms = True
+        exact = not self._add_newton_corrections(P, exact_terms)
         self.factorizations += 1
         self.reuse_policy.factorised(in_newton=True)
         self._factor_controls_current, self.factor_is_exact = True, exact
         x.copy(self._factor_state)
+
+    def _add_newton_corrections(self, A: PETSc.Mat, exact_terms: bool = True) -> bool:
+        """A += the energy terms' changes of their Hessians for Newton's corrections
+        (``add_newton_correction``; with ``exact_terms`` as ``_newton_corrections`` decides, else
+        every term's); the factor of that matrix is no exact tangent for the sensitivities
+        (``factor_distance``). Returns whether A changed."""
+        changed, self._factor_has_exact_terms = False, False
+        for term in self.energy_terms:
+            if not hasattr(term, "add_newton_correction"):
+                continue
+            if not exact_terms or self._newton_corrections(term):
+                changed = term.add_newton_correction(self.unknown.vector, A, self._constrained_dofs()) or changed
+            else:
+                self._factor_has_exact_terms = True
+        return changed
 
     def _newton_corrections(self, term) -> bool:
         """Whether Newton's tangent takes ``term``'s correction: always, or for a term that says
@@ -937,11 +943,15 @@ class QuasistaticSolver:
         self._distance_work.axpy(-1.0, self._factor_state)
         return self._distance_work.norm(PETSc.NormType.NORM_INFINITY)
 
-    def factorize(self) -> None:
+    def factorize(self, newton_model: bool = False) -> None:
         """Assemble and factorise the tangent at the unknown (for sensitivities; in reuse mode
-        the factor then also serves the next Newton solves)."""
+        the factor then also serves the next Newton solves). ``newton_model``: Newton's tangent,
+        every energy term's correction in it (``factor_is_exact`` False if one changed it)."""
         self.assemble_tangent(self.tangent)
+        changed = newton_model and self._add_newton_corrections(self.tangent, exact_terms=False)
         self._factor(self.tangent)
+        if newton_model:
+            self.factor_is_exact, self._factor_has_exact_terms = not changed, False
         self.unknown.vector.copy(self._factor_state)
 
     def solve_tangent(self, rhs: PETSc.Vec, out: PETSc.Vec) -> None:

@@ -79,11 +79,12 @@ class FaceFitter:
     # -- Jacobian -----------------------------------------------------------------------------
     def _columns(self, state: ControlState, approximate_within: float) -> tuple[np.ndarray, np.ndarray, float, bool]:
         """dX/dc as dof arrays (k, ndofs), the marker Jacobian (k, markers, 3), the time and
-        whether it is exact (from the tangent at this state, not at one ``approximate_within`` mm
-        away)."""
+        whether it is exact (from the exact tangent at this state, not from Newton's or from one
+        at a state up to ``approximate_within`` mm away)."""
         start = time.perf_counter()
-        exact_jacobian = (self.sensitivity.factor(reuse_within=approximate_within) == 0.0
-                          and self.problem.solver.factor_is_exact)
+        distance = self.sensitivity.factor(reuse_within=approximate_within,
+                                           newton_tangent=self.settings.fresh_jacobian_from_newton_tangent)
+        exact_jacobian = distance == 0.0 and self.problem.solver.factor_is_exact
         columns = [self.sensitivity.activation_columns()]
         cranium_marker_columns = None
         if self.settings.fit_head:

@@ -38,6 +38,12 @@ class FitSettings:
     # fit's optimum, depends on it; with contact, Newton's, whose barrier Hessians are projected)
     # instead of factorising again. 0: always the exact tangent.
     approximate_jacobian_within: float = 0.0
+    # ... and where no factor lies that close, the fresh factor (with approximate_jacobian_within > 0)
+    # is one of Newton's tangent at the equilibrium, which the next Newton solves keep, not of the
+    # exact one: with contact, the exact tangent's corrections (no projection, no lips' barrier of
+    # wider reach) brought the lips together until the collision-free bound cut them, and Newton
+    # factorised again (docs/performance.md, "Fresh Jacobians from Newton's tangent").
+    fresh_jacobian_from_newton_tangent: bool = True
     # Exact mode: trust region on the activation step (max |da|), adapted within a frame by how
     # well the linear prediction matched (doubles on agreement, halves otherwise). Noise in
     # poorly identified muscle combinations otherwise moves activations by 0.5 in one step, and

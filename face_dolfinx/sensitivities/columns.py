@@ -32,17 +32,18 @@ class EquilibriumSensitivity:
         self._lift_bc = fem.dirichletbc(self._lift, problem.bone_blocks)
         self._accepted_distance = 0.0
 
-    def factor(self, reuse_within: float = 0.0) -> float:
+    def factor(self, reuse_within: float = 0.0, newton_tangent: bool = False) -> float:
         """Set up the tangent at the current shape for the solves that follow: the solver's newest
         factor if it holds a tangent of these controls (with ``reuse_within`` > 0 also Newton's,
         whose contact Hessians are projected) at a state no further than ``reuse_within`` (mm, per
-        dof) from this one, else a fresh assembly and factorisation. Returns the distance of the
-        factor's state from this one: 0 with ``solver.factor_is_exact``, the exact tangent."""
+        dof) from this one, else a fresh assembly and factorisation: of the exact tangent, or with
+        ``newton_tangent`` and ``reuse_within`` > 0 of Newton's at this state. Returns the distance
+        of the factor's state from this one: 0 with ``solver.factor_is_exact``, the exact tangent."""
         self._accepted_distance = reuse_within
         distance = self.solver.factor_distance(exact=reuse_within == 0.0)
         if math.isfinite(distance) and distance <= reuse_within:
             return distance
-        self.solver.factorize()
+        self.solver.factorize(newton_model=newton_tangent and reuse_within > 0.0)
         return 0.0
 
     def _solve_all(self, fill_rhs, count: int) -> np.ndarray:
