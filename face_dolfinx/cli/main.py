@@ -1277,8 +1277,9 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "\"Contact in tracking\")")
     p.add_argument("--approximate-jacobians", type=float, metavar="MM",
                    help="a Jacobian may use the last factor of the equilibrium solve if it was made at "
-                        "a state this close to the equilibrium, instead of a new factorisation "
-                        "(default 0: always the exact tangent)")
+                        "a state this close to the equilibrium, instead of a new factorisation, and is "
+                        "otherwise from a factor of Newton's tangent at the equilibrium, which the next "
+                        "Newton solves keep (default 0: always the exact tangent)")
     p.add_argument("--fast", action="store_true",
                    help="the preset for takes at capture rate (face_dolfinx.tracking, docs/performance.md): "
                         + " ".join(f"--{key.replace('_', '-')}" + ("" if value is True else f" {value}")

@@ -38,7 +38,8 @@ an iteration then costs a residual and a solve instead of an assembly and a fact
 energy terms a cut too slow is judged again by the residual's energy norm, R . K0^-1 R (one solve
 with the old factor K0), which the pressed lips' stiff barrier rows weigh little.
 ``factor_distance()`` says how far the unknown has moved from the state whose tangent the factor
-holds, for callers that can use a nearby tangent (approximate Jacobians).
+holds, for callers that can use a nearby tangent (approximate Jacobians); ``factorize(newton_model=True)``
+gives such a caller Newton's tangent at the unknown, which the next Newton solves keep as theirs.
 
 Energy terms evaluated outside UFL (``energy_terms``, e.g. the contact barrier of
 ``face_dolfinx.physics.contact``) add to the total energy: each gives its energy, adds its gradient to
