@@ -138,6 +138,10 @@ record $RESULTS/contact/judged_cuts_20k_np1.jsonl $PYTHON benchmarks/contact_tra
 record $RESULTS/contact/newton_jacobians_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 10 --variants no-contact contact contact+exact-fresh-jacobians \
   --interleave --max-seconds 1500 --abort-seconds 3000
+# ... and from the open vowel (frame 15, from rest) through the lips' second closure.
+record $RESULTS/contact/newton_jacobians_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
+  --interleave --max-seconds 1500 --abort-seconds 2400
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
