@@ -134,7 +134,8 @@ record $RESULTS/contact/judged_cuts_opening_404k_np2.jsonl mpirun -n 2 $PYTHON b
 record $RESULTS/contact/judged_cuts_20k_np1.jsonl $PYTHON benchmarks/contact_tracking.py \
   --tets 20000 --head-motion --start 5 --frames 20 --variants no-contact contact contact+judged-cuts --interleave
 # A fresh approximate Jacobian from a factor of Newton's tangent (FitSettings.fresh_jacobian_from_newton_tangent),
-# against the exact tangent's (contact+exact-fresh-jacobians), frames 5-14.
+# against the exact tangent's (contact+exact-fresh-jacobians), frames 5-14; newton_jacobians_404k_np2_rerun is
+# the same command with --frames 8 --variants no-contact contact --max-seconds 1200 --abort-seconds 1800.
 record $RESULTS/contact/newton_jacobians_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --frames 10 --variants no-contact contact contact+exact-fresh-jacobians \
   --interleave --max-seconds 1500 --abort-seconds 3000
