@@ -356,7 +356,7 @@ def test_a_fresh_approximate_jacobian_factorises_newtons_tangent(pressed, model)
     lips, their pair Hessians projected and their barrier of wider reach in it: not the exact
     tangent (exact sensitivities factorise again), kept by the next approximate Jacobian. Its lip
     marker columns lie 16 % from the exact ones (10 % with the projection alone): a Gauss-Newton
-    direction, as the columns from Newton's last factor are."""
+    direction, of the same kind as the columns from Newton's last factor."""
     solver, sensitivity = pressed.solver, EquilibriumSensitivity(pressed)
     markers = PointEvaluator(pressed.V, np.array([model.markers[name] for name in LIP_MARKERS]))
     solver.controls_changed()  # no factor holds a tangent of these controls
