@@ -735,7 +735,8 @@ class ContactPotential:
         values[self.surface.owned_blocks] = moved[self.surface.owned_nodes]
         return out, np.flatnonzero(held)
 
-    def carry(self, poses, solver, reach: float, free_blocks: np.ndarray | None = None) -> int:
+    def carry(self, poses, solver, reach: float, free_blocks: np.ndarray | None = None,
+              admissible=None) -> int:
         """Put the objects at ``poses``, carrying along the surface nodes that rest on them: every
         node within ``reach`` (mm) of an object at its present pose, and every farther one that the
         object at its new pose would leave closer than PUSH_GAP * dhat (the teeth closing onto the
@@ -748,15 +749,24 @@ class ContactPotential:
         the teeth overrun would be inside them. The nodes of the local dof blocks ``free_blocks``
         (of any rank) are never held: the lips' nodes, which the lips' barrier must keep out of
         the other lip (moved rigidly with the lower teeth, the lower lip's lining went through the
-        upper lip). Returns the Newton iterations it took."""
+        upper lip). Those of them that an object's new pose would leave closer than the gap they
+        have now (or PUSH_GAP * dhat) start the solve moved out along its normal to that gap where
+        ``admissible(start, end)`` (dof arrays) accepts the move, e.g. the lips do not pass each
+        other: left where they were, lip nodes inside the teeth gave the solve no finite residual
+        (the lips' second closure, docs/performance.md). Returns the Newton iterations it took."""
         u = solver.unknown
-        x = self.positions(u.x.array)
         gaps = self.gaps(u.x.array, within=reach)
         # A node farther than ``reach`` that an object's new pose overruns goes with that object.
         overrun = self.gaps(u.x.array, poses, within=PUSH_GAP * self.dhat) < PUSH_GAP * self.dhat
         carried = (gaps < reach) | overrun
         if free_blocks is not None:
-            carried &= ~self.surface.flagged(free_blocks)
+            free = self.surface.flagged(free_blocks)
+            carried &= ~free
+            if admissible is not None and (overrun & free).any():
+                moved = self._kept_clear(u.x.array, overrun & free, gaps, poses)
+                if admissible(u.x.array, moved):
+                    u.x.array[:] = moved
+        x = self.positions(u.x.array)
         gaps[~carried] = np.inf
         nearest, held = gaps.argmin(axis=0), carried.any(axis=0)
         target = x.copy()
@@ -779,6 +789,19 @@ class ContactPotential:
             self.ignored = ignored
             solver.bcs.remove(condition)
             solver.controls_changed()
+
+    def _kept_clear(self, displacement: np.ndarray, nodes: np.ndarray, gaps: np.ndarray, poses) -> np.ndarray:
+        """A copy of the dof array ``displacement`` (ghosts included) in which each node flagged in
+        ``nodes`` (objects, nodes) that the object at its pose in ``poses`` leaves closer than its
+        gap in ``gaps`` (capped at PUSH_GAP * dhat) is moved out along that object's normal to it."""
+        x = self.positions(displacement)
+        for k, (obj, pose) in enumerate(zip(self.objects, poses)):
+            chosen = np.flatnonzero(nodes[k])
+            if chosen.size:
+                gap, normal, _ = obj.gaps(x[chosen], pose, within=PUSH_GAP * self.dhat)
+                wanted = np.minimum(gaps[k, chosen], PUSH_GAP * self.dhat)
+                x[chosen] += np.maximum(wanted - gap, 0.0)[:, None] * normal
+        return self.surface.placed(displacement, x, np.flatnonzero(nodes.any(axis=0)))
 
     def move_to(self, poses, solver) -> int:
         """Put the objects at ``poses``, first pushing the surface out of them (``push_out``) and

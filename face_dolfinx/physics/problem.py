@@ -652,11 +652,7 @@ class FaceProblem:
         the whole face's prediction short for those few nodes, and Newton took the cut prediction
         after solves that push the lining out of the teeth moved to their poses."""
         projected = self.teeth_contact.projected_end(equilibrium, end, poses, PROJECTION_LIMIT)
-        if projected is None:
-            return None
-        if self.solver.inversion_guard.step_fraction(equilibrium, equilibrium - projected) < 1.0:
-            return None
-        if self.lips is not None and self.lips.admissible_fraction(equilibrium, projected) < 1.0:
+        if projected is None or not self._admissible_move(equilibrium, projected):
             return None
         # (Collective on every rank: the ranks may log at different levels.)
         moves = np.linalg.norm((projected - end).reshape(-1, 3), axis=1)
@@ -664,6 +660,13 @@ class FaceProblem:
         log.debug("prediction's lining moved out of the teeth instead: %d nodes, up to %.3g mm", moved,
                   self.comm.allreduce(float(moves.max(initial=0.0)), op=MPI.MAX))
         return projected
+
+    def _admissible_move(self, start: np.ndarray, end: np.ndarray) -> bool:
+        """Whether the straight move from the displacement ``start`` to ``end`` flattens no cell
+        and lets the lips pass each other nowhere (collective; the same on every rank)."""
+        if self.solver.inversion_guard.step_fraction(start, start - end) < 1.0:
+            return False
+        return self.lips is None or self.lips.admissible_fraction(start, end) == 1.0
 
     def _carried_with_head(self, start: Controls, target: Controls) -> Controls:
         """Before a prediction with lip or teeth contact is bounded: carry the equilibrium (and the
@@ -712,7 +715,7 @@ class FaceProblem:
             self.teeth_contact.set_poses(tuple(change.compose(pose) for pose in self.teeth_poses(before)))
             lips = self.lips.surface.local_blocks if self.lips is not None else None
             return iterations + self.teeth_contact.carry(self.teeth_poses(controls), self.solver, CARRY_REACH,
-                                                         free_blocks=lips)
+                                                         free_blocks=lips, admissible=self._admissible_move)
         if self.teeth_contact is not None:
             poses = self.teeth_poses(controls)
             if self.teeth_contact.closes_in(self.u.x.array, self.teeth_contact.poses, poses):
