@@ -116,13 +116,17 @@ class TimedTerm:
 
 
 class NewtonCount:
-    """Newton iterations of every ``solver.newton()`` (continuation steps and push-outs included)."""
+    """Newton iterations of every ``solver.newton()`` (continuation steps and push-outs included);
+    with ``check_starts``, also the solves whose start has no finite residual (one more residual
+    assembly per solve)."""
 
-    def __init__(self, solver):
-        self.iterations = 0
+    def __init__(self, solver, check_starts: bool = False):
+        self.iterations = self.nonfinite_starts = 0
         newton = solver.newton
 
         def counted():
+            if check_starts and not np.isfinite(solver.residual_norm()):
+                self.nonfinite_starts += 1
             result = newton()
             self.iterations += result[1]
             return result

@@ -452,6 +452,34 @@ def test_the_jaw_carries_the_lining_but_not_the_lips(model):
     assert max(iterations[-2:]) < 100
 
 
+def test_lip_nodes_the_teeth_overrun_start_the_carry_outside_them(model, monkeypatch):
+    """As the lips close again with the head moving (the bilabial take's frames 19-20, each solved
+    from the last equilibrium, as the truth is), the lower teeth's new pose overruns lip nodes that
+    ``ContactPotential.carry`` leaves free for the lips' barrier. They start its solve moved out to
+    the gap they had: every Newton solve starts with a finite residual and each frame takes one
+    load step. (Left where they were, inside the teeth: eight starts without a finite residual and
+    frames 19-20 in 2 and 3 load steps.)"""
+    problem = FaceProblem(model, **truth_contact_options(model, "lips+teeth", where="test"))
+    activations, tmj, head = control_curves(model, "bilabial", 60, head_motion=True)
+    finite_starts = []
+    newton = problem.solver.newton
+
+    def checked_newton():
+        finite_starts.append(bool(np.isfinite(problem.solver.residual_norm())))
+        return newton()
+
+    monkeypatch.setattr(problem.solver, "newton", checked_newton)
+    for frame in range(21):
+        report = problem.solve(activations=activations[frame], cranium=head[frame],
+                               jaw=jaw_pose(model.jaw, *tmj[frame]))
+        assert report.converged
+        if frame >= 19:
+            assert report.load_steps == 1
+    assert all(finite_starts)
+    assert problem.lips.min_distance(problem.u.x.array) > 0.0
+    assert problem.teeth_contact.min_gap(problem.u.x.array) > 0.0
+
+
 def test_a_push_out_through_the_lips_is_not_solved_from(model, monkeypatch):
     """Before Newton starts from a predicted shape the teeth move to their new poses and push the
     lining out of their way (``ContactPotential.move_to``), which knows nothing of the lips: on the

@@ -30,6 +30,7 @@ adds the terms of the nodes it owns. ``ContactPotential`` is the solver's extra 
 tangent, step bound next to the inversion guard's.
 """
 from dataclasses import dataclass
+import logging
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -39,6 +40,8 @@ from dolfinx import fem, geometry
 
 from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
+
+log = logging.getLogger(__name__)
 
 # Along a Newton step or line-search segment no node may lose more than this fraction of its gap
 # (IPC's conservative rescaling of the time of impact, 0.8, is the same bound for a plane).
@@ -766,6 +769,9 @@ class ContactPotential:
                 moved = self._kept_clear(u.x.array, overrun & free, gaps, poses)
                 if admissible(u.x.array, moved):
                     u.x.array[:] = moved
+                else:
+                    log.debug("carry: %d free nodes that the new poses overrun not moved out (not admissible)",
+                              int((overrun & free).any(axis=0).sum()))
         x = self.positions(u.x.array)
         gaps[~carried] = np.inf
         nearest, held = gaps.argmin(axis=0), carried.any(axis=0)
