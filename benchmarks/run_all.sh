@@ -143,6 +143,15 @@ record $RESULTS/contact/newton_jacobians_404k_np2.jsonl mpirun -n 2 $PYTHON benc
 record $RESULTS/contact/newton_jacobians_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
   --interleave --max-seconds 1500 --abort-seconds 2400
+# The same stretch with the lip nodes the teeth overrun moved out before the carry (ContactPotential.carry),
+# and the synthetic take's truth with the head moving, solved frame by frame, at 5K and 20K.
+record $RESULTS/contact/kept_clear_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
+  --interleave --max-seconds 1500 --abort-seconds 2400
+for tets in 5000 20000; do
+  $PYTHON benchmarks/pressed_lips_newton.py --tets $tets --start 0 --frames 30 --head-motion --variants refuse \
+    --out $RESULTS/contact/kept_clear_truth_$((tets / 1000))k_np1.json
+done
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
