@@ -29,6 +29,7 @@ adds the terms of the nodes it owns. ``ContactPotential`` is the solver's extra 
 (``QuasistaticSolver(energy_terms=...)``): energy, gradient into the residual, Hessian into the
 tangent, step bound next to the inversion guard's.
 """
+from collections.abc import Callable
 from dataclasses import dataclass
 import logging
 
@@ -739,7 +740,7 @@ class ContactPotential:
         return out, np.flatnonzero(held)
 
     def carry(self, poses, solver, reach: float, free_blocks: np.ndarray | None = None,
-              admissible=None) -> int:
+              admissible: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> int:
         """Put the objects at ``poses``, carrying along the surface nodes that rest on them: every
         node within ``reach`` (mm) of an object at its present pose, and every farther one that the
         object at its new pose would leave closer than PUSH_GAP * dhat (the teeth closing onto the
@@ -765,13 +766,14 @@ class ContactPotential:
         if free_blocks is not None:
             free = self.surface.flagged(free_blocks)
             carried &= ~free
-            if admissible is not None and (overrun & free).any():
-                moved = self._kept_clear(u.x.array, overrun & free, gaps, poses)
+            overrun_free = overrun & free
+            if admissible is not None and overrun_free.any():
+                moved = self._kept_clear(u.x.array, overrun_free, gaps, poses)
                 if admissible(u.x.array, moved):
                     u.x.array[:] = moved
                 else:
                     log.debug("carry: %d free nodes that the new poses overrun not moved out (not admissible)",
-                              int((overrun & free).any(axis=0).sum()))
+                              int(overrun_free.any(axis=0).sum()))
         x = self.positions(u.x.array)
         gaps[~carried] = np.inf
         nearest, held = gaps.argmin(axis=0), carried.any(axis=0)
