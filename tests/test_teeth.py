@@ -403,6 +403,37 @@ def test_a_prediction_that_takes_the_lining_into_the_teeth_moves_it_out(model, p
     assert problem.comm.allreduce(np.abs(problem.u.x.array - start).max(initial=0.0), op=MPI.MAX) < 1e-3
 
 
+def test_a_lining_node_from_afar_is_projected_out_of_the_teeth(model, pressed):
+    """A lining node 5-8 mm from the teeth whose prediction takes it 0.3 mm into them: its
+    clearance ((1 - CCD_KEEP) of its gap, over 1 mm) lies beyond the teeth's dhat, and its
+    projected place is checked against that clearance by its true gap (the gap within dhat alone
+    is a lower bound there, dhat, which refused the projection), so ``projected_end`` moves it out
+    to the teeth's tangent plane at that clearance, by less than the limit, and it alone."""
+    problem = FaceProblem(model, contact=ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS))
+    problem.u.x.array[:] = pressed[0].u.x.array
+    teeth = problem.teeth_contact
+    start = problem.u.x.array.copy()
+    gaps = teeth.gaps(start)
+    nearest = gaps.min(axis=0)
+    node = int(np.flatnonzero((nearest > 5.0) & (nearest < 8.0))[0])
+    obj = int(np.argmin(gaps[:, node]))
+    x = teeth.positions(start)
+    normal = teeth.objects[obj].gaps(x[[node]], teeth.poses[obj])[1][0]
+    x[node] -= (nearest[node] + 0.3) * normal
+    guess = teeth.surface.placed(start, x, np.array([node]))
+    assert teeth.gaps(guess)[obj, node] < 0.0
+    clearance = (1.0 - CCD_KEEP) * nearest[node]
+    assert clearance > 2.0 * TEETH_DHAT
+
+    projected = teeth.projected_end(start, guess, teeth.poses, limit=2.0)
+    assert projected is not None
+    ends = teeth.positions(projected)
+    assert teeth.gaps(projected)[obj, node] >= 0.5 * clearance
+    assert 0.0 < np.linalg.norm(ends[node] - x[node]) <= 2.0
+    others = np.arange(len(ends)) != node
+    assert np.abs(ends[others] - teeth.positions(guess)[others]).max(initial=0.0) == 0.0
+
+
 def test_a_cut_prediction_keeps_the_heads_whole_motion(model, pressed):
     """A Gauss-Newton prediction that turns the head (2 degrees about a tilted axis and 1 mm) and
     carries the lining into the teeth far enough to be cut short (the pressed shape's displacement

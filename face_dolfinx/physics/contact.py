@@ -698,13 +698,20 @@ class ContactPotential:
             ends = x0[hit] + moves[hit]
             push = np.maximum(np.einsum("ij,ij->i", contact - ends, normal), 0.0)
             if push.max(initial=0.0) > limit:
+                log.debug("lining not projected out of an object: %d nodes, one by %.3g mm (limit %g)", hit.size,
+                          push.max(), limit)
                 return None
             x1[hit] = to_start.inverse().apply(ends + push[:, None] * normal)
             moved[hit] = True
         if not moved.any():
             return end.copy()
+        chosen = np.flatnonzero(moved)
         for obj, end_pose, clearance in zip(self.objects, end_poses, clearances):
-            if (obj.gaps(x1[moved], end_pose, within=self.dhat)[0] < 0.5 * clearance[moved]).any():
+            # (Within dhat only, a farther node's gap is a lower bound, dhat: not to be compared with
+            # a clearance beyond 2 dhat.)
+            gap = obj.gaps(x1[chosen], end_pose, within=max(self.dhat, clearance[chosen].max()))[0]
+            if (gap < 0.5 * clearance[chosen]).any():
+                log.debug("lining not projected out of an object: a projected node still ends too close")
                 return None
         x[kept[moved]] = x1[moved]
         return self.surface.placed(end, x, kept[moved])

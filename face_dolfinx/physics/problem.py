@@ -652,7 +652,11 @@ class FaceProblem:
         the whole face's prediction short for those few nodes, and Newton took the cut prediction
         after solves that push the lining out of the teeth moved to their poses."""
         projected = self.teeth_contact.projected_end(equilibrium, end, poses, PROJECTION_LIMIT)
-        if projected is None or not self._admissible_move(equilibrium, projected):
+        if projected is None:
+            return None
+        if not self._admissible_move(equilibrium, projected):
+            log.debug("prediction's lining not moved out of the teeth: the move flattens a cell or lets the lips "
+                      "pass each other")
             return None
         # (Collective on every rank: the ranks may log at different levels.)
         moves = np.linalg.norm((projected - end).reshape(-1, 3), axis=1)
