@@ -155,6 +155,10 @@ for tets in 5000 20000; do
   $PYTHON benchmarks/pressed_lips_newton.py --tets $tets --start 0 --frames 30 --head-motion --variants refuse \
     --out $RESULTS/contact/kept_clear_truth_$((tets / 1000))k_np1.json
 done
+# The open stretch with the teeth's projection of a prediction's lining judged by true gaps (ContactPotential.projected_end).
+record $RESULTS/contact/projection_gaps_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
+  --interleave --max-seconds 1500 --abort-seconds 3000
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
