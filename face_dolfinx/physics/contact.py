@@ -713,8 +713,8 @@ class ContactPotential:
             if (gap < 0.5 * clearance[chosen]).any():
                 log.debug("lining not projected out of an object: a projected node still ends too close")
                 return None
-        x[kept[moved]] = x1[moved]
-        return self.surface.placed(end, x, kept[moved])
+        x[kept[chosen]] = x1[chosen]
+        return self.surface.placed(end, x, kept[chosen])
 
     # -- moving the objects ------------------------------------------------------------------
     def closes_in(self, displacement: np.ndarray, old_poses, new_poses) -> bool:
