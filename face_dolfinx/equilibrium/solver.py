@@ -526,12 +526,14 @@ class QuasistaticSolver:
                  reuse_policy: FactorReusePolicy | None = None, krylov_on_old_factor: bool = False,
                  step_tolerance: float = 1e-8, energy_tolerance: float | None = None,
                  keep_packed_coefficients: bool = False, energy_terms: tuple = (),
-                 contact_relaxation: bool = False):
+                 contact_relaxation: bool = False, flesh_correction=None):
         if tangent not in TANGENT_STRUCTURES:
             raise ValueError(f"tangent = {tangent!r}: give one of {', '.join(TANGENT_STRUCTURES)}")
         self.unknown = unknown
         self.inversion_guard = inversion_guard
         self.energy_terms = tuple(energy_terms)
+        # Newton's change to the flesh's own tangent (``definite.DefiniteFleshTangent``) or None.
+        self.flesh_correction = flesh_correction
         self.reuse_policy = reuse_policy if reuse_policy is not None else FactorReusePolicy()
         # mm: Newton has converged once a correction moves no dof further than this. 1e-8 mm lies
         # far below anything measurable and above the round-off of the corrections.
@@ -868,6 +870,14 @@ class QuasistaticSolver:
                 changed = term.add_newton_correction(self.unknown.vector, A, self._constrained_dofs()) or changed
             else:
                 self._factor_has_exact_terms = True
+        flesh = self.flesh_correction
+        if flesh is not None:
+            if not exact_terms or self._newton_corrections(flesh):
+                constrained = [bc.dof_indices()[0] for bc in self.bcs]
+                changed = flesh.add_newton_correction(
+                    self.unknown.vector, A, np.concatenate(constrained) if constrained else np.zeros(0, np.int32)) or changed
+            else:
+                self._factor_has_exact_terms = True
         return changed
 
     def _newton_corrections(self, term) -> bool:
@@ -917,7 +927,8 @@ class QuasistaticSolver:
         self.reuse_policy.factorised(in_newton=False)
         self._factor_controls_current, self.factor_is_exact = True, True
         # The sensitivities' tangent is exact: Newton may keep it (reuse across solves).
-        self._factor_has_exact_terms = any(hasattr(term, "add_newton_correction") for term in self.energy_terms)
+        self._factor_has_exact_terms = (self.flesh_correction is not None
+                                        or any(hasattr(term, "add_newton_correction") for term in self.energy_terms))
 
     def _coefficients(self, form: int) -> dict | None:
         """Packed coefficients of the residual (0) or tangent (1) form; None: DOLFINx packs them."""

@@ -45,6 +45,7 @@ import forms
 from face_dolfinx.model.bones import AffineMap
 from face_dolfinx.model.folder import cell_midpoints
 from face_dolfinx.model.regions import material_fields
+from face_dolfinx.equilibrium.definite import DefiniteFleshTangent
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
 from face_dolfinx.physics.contact import CARRY_REACH, ContactPotential, ContactSettings
@@ -224,6 +225,11 @@ class FaceProblem:
         pushes on are brought to their own equilibrium by a local Newton, the rest held
         (``equilibrium.relaxation``): fewer factorisations where pressed lips slide
         (docs/performance.md, "Contact in tracking").
+    definite_tangent : Newton's tangent takes each cell's flesh stiffness with its clearly negative
+        curvature clamped (``equilibrium.definite``), until Newton is near the solution; the
+        equilibrium is the same. None (default): on with lip or teeth contact, where the teeth
+        squeeze the lining into cells whose exact stiffness makes the tangent nearly singular
+        (docs/performance.md, "A definite flesh tangent"); P1 displacements only.
     """
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
@@ -232,7 +238,7 @@ class FaceProblem:
                  newton_energy_tolerance: float | None = None, refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True,
                  line_search_iterations: int = 1, intraoral_pressure: bool = False,
                  contact: ContactSettings | None = None, lip_contact: LipContactSettings | None = None,
-                 contact_relaxation: bool = False):
+                 contact_relaxation: bool = False, definite_tangent: bool | None = None):
         if line_search_iterations < 1:
             raise ValueError(f"line_search_iterations = {line_search_iterations}: give 1 or more")
         self.model = model
@@ -307,6 +313,8 @@ class FaceProblem:
         # (``_bounded_locally``) before it is cut as a whole; False only to measure it.
         self.bound_prediction_locally = True
         energy_terms = tuple(term for term in (self.contact, self.teeth_contact, self.lips) if term is not None)
+        if definite_tangent is None:
+            definite_tangent = degree == 1 and (self.lips is not None or self.teeth_contact is not None)
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
         # closed by the orbicularis oris at 1): Newton is given room before continuation.
         lip_newton = {"snes_max_it": LIP_NEWTON_ITERATIONS} if self.lips is not None else {}
@@ -326,7 +334,9 @@ class FaceProblem:
                                         krylov_on_old_factor=krylov_on_old_factor,
                                         step_tolerance=newton_tolerance,
                                         energy_tolerance=newton_energy_tolerance, keep_packed_coefficients=True,
-                                        energy_terms=energy_terms, contact_relaxation=contact_relaxation)
+                                        energy_terms=energy_terms, contact_relaxation=contact_relaxation,
+                                        flesh_correction=(DefiniteFleshTangent(self.material.first_piola, F, self.u)
+                                                          if definite_tangent else None))
         self.controls = self.rest_controls()
         self.set_controls(self.controls)
 
