@@ -517,6 +517,9 @@ class QuasistaticSolver:
     sensitivities' factor kept across solves) that is no descent direction of the energy is solved
     again with every term's correction (``_refuse_exact_terms``; counted by
     ``refused_exact_tangents``): on such corrections Newton cycled, or converged to a maximum.
+    ``flesh_correction`` (``definite.DefiniteFleshTangent``) changes Newton's tangent of the UFL
+    energy itself the same way (with ``exact_near_solution``); its ``constrained`` are all local
+    Dirichlet dofs, ghosts included, since it adds the stiffness of cells that share them.
     """
 
     def __init__(self, residual: ufl.Form, unknown: fem.Function, bcs: list, *, tangent: str,
