@@ -159,6 +159,12 @@ done
 record $RESULTS/contact/projection_gaps_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
   --interleave --max-seconds 1500 --abort-seconds 3000
+# Both stretches with Newton's flesh tangent made definite cell by cell (FaceProblem(definite_tangent=...)).
+for stretch in 5: 15:_open; do
+  record $RESULTS/contact/definite_tangent${stretch#*:}_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+    --tets 400000 --truth-tets 20000 --head-motion --start ${stretch%%:*} --frames 10 --variants no-contact contact \
+    --interleave --max-seconds 1500 --abort-seconds 3000
+done
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
