@@ -1,8 +1,8 @@
 """Newton's tangent of the flesh made positive semidefinite cell by cell.
 
 The flesh's exact tangent is indefinite wherever a cell is squeezed far from rest: the volumetric
-term's kappa ln J d(F^-T)/dF and the isochoric factors' curvature turn negative as J falls, and a
-fiber compressed past the force-length curve's peak softens. Near the lining that the incisors
+term's kappa ln J d(F^-T)/dF and the isochoric factors' curvature turn negative as J falls, and an
+active fiber stretched past the peak of its force-length curve softens. Near the lining that the incisors
 press, such cells make the assembled tangent nearly singular (MUMPS zero pivots) and Newton's
 corrections huge (tens to hundreds of millimetres), which the inversion guard then cuts.
 
@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 NEGATIVE_CURVATURE = 0.05
 # Cells whose dP/dF is evaluated and checked at once (the 81 values of 20K cells take 13 MB).
 CHUNK = 20000
+
 
 class DefiniteFleshTangent:
     """The change to the flesh's tangent that makes each cell's stress derivative positive

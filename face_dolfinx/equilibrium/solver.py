@@ -861,9 +861,9 @@ class QuasistaticSolver:
         x.copy(self._factor_state)
 
     def _add_newton_corrections(self, A: PETSc.Mat, exact_terms: bool = True) -> bool:
-        """A += the energy terms' changes of their Hessians for Newton's corrections
-        (``add_newton_correction``; with ``exact_terms`` as ``_newton_corrections`` decides, else
-        every term's); the factor of that matrix is no exact tangent for the sensitivities
+        """A += the energy terms' changes of their Hessians for Newton's corrections, and the
+        flesh's (``add_newton_correction``; with ``exact_terms`` as ``_newton_corrections`` decides,
+        else every one); the factor of that matrix is no exact tangent for the sensitivities
         (``factor_distance``). Returns whether A changed."""
         changed, self._factor_has_exact_terms = False, False
         for term in self.energy_terms:
@@ -876,9 +876,7 @@ class QuasistaticSolver:
         flesh = self.flesh_correction
         if flesh is not None:
             if not exact_terms or self._newton_corrections(flesh):
-                constrained = [bc.dof_indices()[0] for bc in self.bcs]
-                changed = flesh.add_newton_correction(
-                    self.unknown.vector, A, np.concatenate(constrained) if constrained else np.zeros(0, np.int32)) or changed
+                changed = flesh.add_newton_correction(self.unknown.vector, A, self._constrained_dofs(ghosts=True)) or changed
             else:
                 self._factor_has_exact_terms = True
         return changed
@@ -894,12 +892,11 @@ class QuasistaticSolver:
                 and policy.step_bound >= 1.0 and not policy.step_was_cut)
         return not near
 
-    def _constrained_dofs(self) -> np.ndarray:
-        """The owned local dofs of the Dirichlet conditions."""
-        size = self.unknown.vector.getLocalSize()
+    def _constrained_dofs(self, ghosts: bool = False) -> np.ndarray:
+        """The owned (with ``ghosts``, all) local dofs of the Dirichlet conditions."""
         dofs = [bc.dof_indices()[0] for bc in self.bcs]
         dofs = np.concatenate(dofs) if dofs else np.zeros(0, dtype=np.int32)
-        return dofs[dofs < size]
+        return dofs if ghosts else dofs[dofs < self.unknown.vector.getLocalSize()]
 
     def _factor_has_these_conditions(self) -> bool:
         """Whether the factor was made under the Dirichlet conditions now set (the same objects)."""
