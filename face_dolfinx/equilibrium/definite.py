@@ -59,7 +59,6 @@ class DefiniteFleshTangent:
         self._cells = np.arange(owned, dtype=np.int32)  # each cell's correction is added by its owner
         self._blocks = space.dofmap.list.array.reshape(-1, 4)[:owned]
         self._block_coordinates = space.tabulate_dof_coordinates()
-        self._global_blocks = space.dofmap.index_map.local_to_global
         self.corrected_cells = 0  # cells whose stiffness the last correction changed, all ranks
         self.corrected_tangents = 0  # tangents the correction changed
 
@@ -96,12 +95,11 @@ class DefiniteFleshTangent:
             return False
         blocks = self._blocks[cells]
         stiffness = element_stiffness(self._block_coordinates[blocks], D)
-        dofs = (3 * blocks[:, :, None] + np.arange(3)).reshape(-1, 12)
-        stiffness[np.isin(dofs, constrained)[:, :, None] | np.isin(dofs, constrained)[:, None, :]] = 0.0
-        global_dofs = (3 * self._global_blocks(blocks.reshape(-1)).reshape(-1, 4, 1)
-                       + np.arange(3)).reshape(-1, 12).astype(PETSc.IntType)
-        for rows, matrix in zip(global_dofs, stiffness):
-            A.setValues(rows, rows, matrix, addv=PETSc.InsertMode.ADD_VALUES)
+        dofs = (3 * blocks[:, :, None] + np.arange(3)).reshape(-1, 12).astype(PETSc.IntType)
+        held = np.isin(dofs, constrained)
+        stiffness[held[:, :, None] | held[:, None, :]] = 0.0
+        for rows, matrix in zip(dofs, stiffness):  # local dofs, through the matrix's local-to-global map
+            A.setValuesLocal(rows, rows, matrix, addv=PETSc.InsertMode.ADD_VALUES)
         A.assemble()
         self.corrected_tangents += 1
         return True

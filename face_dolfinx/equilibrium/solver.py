@@ -866,17 +866,12 @@ class QuasistaticSolver:
         else every one); the factor of that matrix is no exact tangent for the sensitivities
         (``factor_distance``). Returns whether A changed."""
         changed, self._factor_has_exact_terms = False, False
-        for term in self.energy_terms:
-            if not hasattr(term, "add_newton_correction"):
-                continue
+        terms = [(term, self._constrained_dofs()) for term in self.energy_terms if hasattr(term, "add_newton_correction")]
+        if self.flesh_correction is not None:  # it adds cells' stiffness, so the ghost dofs' too
+            terms.append((self.flesh_correction, self._constrained_dofs(ghosts=True)))
+        for term, constrained in terms:
             if not exact_terms or self._newton_corrections(term):
-                changed = term.add_newton_correction(self.unknown.vector, A, self._constrained_dofs()) or changed
-            else:
-                self._factor_has_exact_terms = True
-        flesh = self.flesh_correction
-        if flesh is not None:
-            if not exact_terms or self._newton_corrections(flesh):
-                changed = flesh.add_newton_correction(self.unknown.vector, A, self._constrained_dofs(ghosts=True)) or changed
+                changed = term.add_newton_correction(self.unknown.vector, A, constrained) or changed
             else:
                 self._factor_has_exact_terms = True
         return changed
