@@ -6,6 +6,8 @@ sparsity, the sensitivities with pressed lips against central differences, the s
 and 2 ranks, and bad input.
 """
 from dataclasses import replace
+import logging
+import re
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -77,6 +79,24 @@ def test_no_iterate_penetrates(model):
     # Newton stops on its correction (1e-10 mm in its converging phase), which against the pressed
     # lips' stiffness leaves a residual ten orders of magnitude below the first (mN).
     assert problem.residual_norm() < 1e-10 * norms[0]
+
+
+def test_the_newton_trace_says_which_term_cut_a_step_and_where_the_residual_sits(model, caplog):
+    """The Newton trace names the energy term whose collision-free bound cut a correction and gives
+    the residual's norm on each contact surface's nodes: a part of the residual, so at most its
+    norm (both printed to 4 digits). The split is a reduction over the ranks, traced by rank 0 alone."""
+    problem = FaceProblem(model, lip_contact=LipContactSettings())
+    with caplog.at_level(logging.DEBUG, logger="face_dolfinx.equilibrium.solver.iterations"):
+        report = problem.solve(activations=sphincter(model), jaw=jaw_pose(model.jaw, CLOSED))
+    assert report.converged
+    if problem.comm.rank != 0:
+        return
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Newton ")]
+    assert len(lines) > 10
+    for line in lines:
+        total, lips = re.match(r"Newton \d+: residual (\S+) mN \(lips (\S+)\)", line).groups()
+        assert float(lips) <= float(total) * (1.0 + 1e-3)
+    assert any(re.search(r"bound 0\.\d+ \(lips\)", line) for line in lines)
 
 
 def _bone_dofs(problem):

@@ -316,6 +316,7 @@ class DoubleWell:
     clamped one, max(0, ...), before."""
 
     exact_near_solution = True
+    label = "double well"
 
     def __init__(self, space, point, a=50.0, c=1.0, f=0.1):
         coordinates = space.tabulate_dof_coordinates()

@@ -508,7 +508,8 @@ class QuasistaticSolver:
     ``add_hessian(x, A, constrained)`` (A assembled; ``constrained``: the owned local Dirichlet dofs,
     whose rows and columns it leaves alone) and ``step_fraction(x, step, largest)`` (the largest t in
     (0, 1] such that x - s t largest step stays admissible for s in [0, 1]); x is the unknown's PETSc
-    vector, all collective. A term whose Hessian couples nodes that share no element also has
+    vector, all collective; ``label`` names it in the Newton trace, which also gives the residual's
+    norm on the nodes of each term that has a ``surface`` (its ``ContactSurface``). A term whose Hessian couples nodes that share no element also has
     ``coupled_blocks()``, (k, 2) global node pairs: the tangent is built with room for them
     (``widened_tangent``). A term may change Newton's tangent (not the sensitivities'):
     ``add_newton_correction(x, A, constrained)``, True if it did, taken at every factorisation, or
@@ -546,6 +547,8 @@ class QuasistaticSolver:
             raise ValueError(f"energy_tolerance = {energy_tolerance}: give a positive energy (mN mm) or None")
         self.energy_tolerance = energy_tolerance if self.energy_terms else None
         self._released = math.inf  # energy the last correction would release (R . du / 2, mN mm)
+        self._bounding_term = None  # label of the energy term whose bound cut the last correction most
+        self._tracing = False  # the Newton trace is on (rank 0's logger, the same on every rank)
         self.energy_stops = 0  # Newton solves stopped by energy_tolerance
         self.factorizations = 0     # numerical factorisations so far (a cost counter)
         self.residual_evaluations = 0  # residual assemblies so far (matrix-free products included)
@@ -710,9 +713,11 @@ class QuasistaticSolver:
             with self._guard_x.localForm() as x_local, self._guard_step.localForm() as step_local:
                 fraction = self.inversion_guard.step_fraction(
                     x_local.array_r, step_local.array_r, largest) / largest
-        bound = 1.0
+        bound, self._bounding_term = 1.0, None
         for term in self.energy_terms:
-            bound = min(bound, term.step_fraction(x, step, largest))
+            term_bound = term.step_fraction(x, step, largest)
+            if term_bound < bound:
+                bound, self._bounding_term = term_bound, term.label
         return fraction, bound
 
     def _relax_contact_nodes(self, x: PETSc.Vec, step: PETSc.Vec) -> None:
@@ -771,14 +776,18 @@ class QuasistaticSolver:
         policy.record_residual(iteration, fnorm)
         if iteration == 0:
             self._guard_cuts, self._initial_fnorm, self._released = 0, fnorm, math.inf
-        if self.comm.rank == 0 and trace.isEnabledFor(logging.DEBUG):
-            if iteration == 0:
-                trace.debug("Newton 0: residual %.4g mN", fnorm)
-            else:  # what the correction of the iteration before did
-                trace.debug("Newton %d: residual %.4g mN (x %.3g) after a correction from %s factor (%d made so "
-                            "far): %.3g mm, %.3g taken (2-norm), bound %.3g%s, releasing %.3g mN mm", iteration,
-                            fnorm, policy.contraction, "a fresh" if policy.fresh_factor else "an old",
+            # (Whether rank 0 traces: the residual's split below is a reduction over the ranks.)
+            self._tracing = self.comm.bcast(self.comm.rank == 0 and trace.isEnabledFor(logging.DEBUG), root=0)
+        if self._tracing:
+            split = self._residual_split(snes.getFunction()[0])
+            if self.comm.rank == 0 and iteration == 0:
+                trace.debug("Newton 0: residual %.4g mN%s", fnorm, split)
+            elif self.comm.rank == 0:  # what the correction of the iteration before did
+                trace.debug("Newton %d: residual %.4g mN%s (x %.3g) after a correction from %s factor (%d made so "
+                            "far): %.3g mm, %.3g taken (2-norm), bound %.3g%s%s, releasing %.3g mN mm", iteration,
+                            fnorm, split, policy.contraction, "a fresh" if policy.fresh_factor else "an old",
                             self.factorizations, policy.correction_size, step_norm, policy.step_bound,
+                            f" ({self._bounding_term})" if policy.step_bound < 1.0 else "",
                             ", guard cut" if policy.step_was_cut else "", self._released)
         if not np.isfinite(fnorm):
             return reasons.DIVERGED_FNORM_NAN
@@ -810,6 +819,17 @@ class QuasistaticSolver:
                           self._guard_cuts, STALLED_GUARD_FRACTION)
             return reasons.DIVERGED_LINE_SEARCH
         return reasons.CONVERGED_ITERATING
+
+    def _residual_split(self, residual: PETSc.Vec) -> str:
+        """For the trace: the residual's norm on each energy term's contact nodes (collective), where
+        a crawling Newton's residual sits (the lips' peeling front: docs/performance.md)."""
+        terms = [term for term in self.energy_terms if hasattr(term, "surface")]
+        if not terms:
+            return ""
+        squares = np.square(residual.array_r).reshape(-1, 3).sum(axis=1)
+        norms = [math.sqrt(self.comm.allreduce(float(squares[term.surface.owned_blocks].sum()), op=MPI.SUM))
+                 for term in terms]
+        return " (" + ", ".join(f"{term.label} {norm:.4g}" for term, norm in zip(terms, norms)) + ")"
 
     def assemble_tangent(self, A: PETSc.Mat) -> None:
         """Assemble the tangent at the unknown into ``A`` (Dirichlet rows and columns identity)."""

@@ -400,11 +400,12 @@ class ContactPotential:
     """The barrier energy of a contact surface against rigid objects at given poses, as an extra
     energy term of the equilibrium solver (see the module docstring). Poses: ``set_poses``."""
 
-    def __init__(self, space: fem.FunctionSpace, facets: np.ndarray, settings: ContactSettings):
+    def __init__(self, space: fem.FunctionSpace, facets: np.ndarray, settings: ContactSettings, label: str = "objects"):
         if not settings.dhat > 0.0 or not settings.stiffness > 0.0:
             raise ValueError(f"{settings.where}: dhat and the stiffness must be positive "
                              f"(got {settings.dhat:g} mm, {settings.stiffness:g} kPa)")
         self.settings = settings
+        self.label = label  # names the term in the Newton trace
         self.space = space
         self.objects = tuple(settings.objects)
         self.dhat, self.stiffness = settings.dhat, settings.stiffness

@@ -391,7 +391,7 @@ class FaceProblem:
         objects = tuple(TriangleMesh(*self.model.teeth[bone], name=f"teeth on the {bone}") for bone in self.teeth_bones)
         teeth = ContactPotential(self.V, self.model.facet_tags.find(tag),
                                  replace(settings, objects=objects, poses=(), dhat=settings.teeth_dhat,
-                                         surface=settings.teeth_surface, where=where))
+                                         surface=settings.teeth_surface, where=where), label="teeth")
         # The bones' nodes move with their own teeth; the barrier must not cut their path short.
         teeth.ignore(self.bone_blocks)
         teeth.check_clear(self.u.x.array, margin=settings.teeth_dhat)

@@ -170,6 +170,7 @@ class LipContact:
     # face, from rest: 238 Newton iterations in 2 load steps projected throughout, 74 in 1 this way,
     # 75 with the exact Hessian always (docs/contact.md, "Newton with pressed lips").
     exact_near_solution = True
+    label = "lips"  # names the term in the Newton trace
 
     def __init__(self, space: fem.FunctionSpace, upper: np.ndarray, lower: np.ndarray, up: np.ndarray,
                  settings: LipContactSettings, constrained_blocks: np.ndarray):
