@@ -82,7 +82,8 @@ VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "co
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
             "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
-            "contact+narrow-newton-lips", "contact+cut-whole", "contact+judged-cuts", "contact+exact-fresh-jacobians", "contact+exact-flesh")
+            "contact+narrow-newton-lips", "contact+cut-whole", "contact+judged-cuts", "contact+exact-fresh-jacobians", "contact+exact-flesh",
+            "contact+no-crawl-relaxation")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 # QuasistaticSolver's counters, per frame
@@ -215,7 +216,8 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
     settings = PRESETS["fast"].updated(dict(contact=contact, krylov=base == "contact-krylov" or None,
                                             newton_energy_tolerance=args.newton_energy_tolerance,
                                             refresh_contraction=args.refresh_contraction if contact else None,
-                                            contact_relaxation=True if "relaxation" in ablations else None))
+                                            contact_relaxation=(True if "relaxation" in ablations else
+                                                                False if "no-crawl-relaxation" in ablations else None)))
     if "exact-fresh-jacobians" in ablations:
         settings = replace(settings, fit=replace(settings.fit, fresh_jacobian_from_newton_tangent=False))
     lip_settings = LipContactSettings(where="--contact",

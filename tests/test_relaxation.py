@@ -9,6 +9,7 @@ from petsc4py import PETSc
 import numpy as np
 import pytest
 
+import face_dolfinx.equilibrium.solver as solver_module
 from face_dolfinx.equilibrium.relaxation import RELAXATION_REDUCTION
 from face_dolfinx.model.bones import jaw_pose
 from face_dolfinx.model.folder import load_model
@@ -127,6 +128,26 @@ def test_patch_residual_is_the_residual_on_the_contact_surface(relaxed):
     assert MPI.COMM_WORLD.allreduce(difference, op=MPI.MAX) <= 1e-9 * scale
     x.copy(relaxed.u.vector)
     relaxed.u.vector.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+
+
+@pytest.mark.parametrize("share, relaxes", [(0.0, True), (1.01, False)])
+def test_by_default_the_relaxation_starts_once_newton_crawls_on_the_contact_nodes(model, monkeypatch, share, relaxes):
+    """``contact_relaxation=None`` (the default) relaxes the contact nodes from the correction at
+    which CRAWL_CUTS corrections in a row were cut by a bound with CRAWL_CONTACT_SHARE of the
+    residual's square on the contact nodes: the lips closing from rest, whose corrections the
+    lips' bound cuts from the first on, with a share of 0 after the first cut correction, with a
+    share above 1 never. Either way no iterate penetrates and the lips end pressed."""
+    monkeypatch.setattr(solver_module, "CRAWL_CUTS", 1)
+    monkeypatch.setattr(solver_module, "CRAWL_CONTACT_SHARE", share)
+    problem = FaceProblem(model, lip_contact=LipContactSettings())
+    assert problem.solver.contact_relaxation is None
+    iterates = LipIterates(problem.lips, problem.V)
+    problem.solver.snes.setMonitor(iterates)
+    assert problem.solve(activations=sphincter(model), jaw=jaw_pose(model.jaw, CLOSED)).converged
+    problem.solver.snes.cancelMonitor()
+    assert (problem.solver.relaxation.local_iterations > 0) == relaxes
+    assert min(iterates.distances) > 0.0 and max(iterates.depths) == 0.0
+    assert problem.lips.pairs(problem.u.x.array) > 20
 
 
 def test_sphere_pressed_into_the_slab_with_relaxation():

@@ -58,7 +58,7 @@ def test_default_preset_is_the_library_default_and_fast_differs_where_documented
                                           newton_tolerance=1e-2, newton_energy_tolerance=100.0,
                                           line_search_iterations=3, krylov_on_old_factor=False,
                                           intraoral_pressure=False, lip_contact=None, contact=None,
-                                          contact_relaxation=False)
+                                          contact_relaxation=None)
 
 
 def test_updated_keeps_what_is_none_and_leaves_the_preset_alone():

@@ -701,7 +701,8 @@ def _contact_solver(args) -> dict:
     """``simulate``'s contact solver options (``FaceProblem``'s keywords): ``--contact-relaxation``
     and ``--newton-energy-tolerance``, which act on contact terms only (``--contact``, ``--object``)."""
     options = dict(contact_relaxation=args.contact_relaxation, newton_energy_tolerance=args.newton_energy_tolerance)
-    if (args.contact_relaxation or args.newton_energy_tolerance is not None) and not (args.contact or args.object):
+    if (args.contact_relaxation is not None or args.newton_energy_tolerance is not None) and not (
+            args.contact or args.object):
         raise SystemExit("--contact-relaxation and --newton-energy-tolerance act on contact: give --contact or "
                          "--object with them")
     tolerance = args.newton_energy_tolerance
@@ -1066,10 +1067,11 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--contact", action="store_true",
                    help="keep the lips and cheeks outside the model's teeth (their oral lining) and the lips "
                         "outside each other (docs/contact.md)")
-    p.add_argument("--contact-relaxation", action="store_true",
+    p.add_argument("--contact-relaxation", action=argparse.BooleanOptionalAction, default=None,
                    help="with --contact or --object: after each Newton correction the nodes in contact are brought "
                         "to their own equilibrium by a local Newton, the rest of the face held (fit "
-                        "--contact-relaxation); "
+                        "--contact-relaxation; by default only once a Newton solve crawls on them, never with "
+                        "--no-contact-relaxation); "
                         "with --newton-energy-tolerance 10 the lips closed hard on the 404K face without a failed "
                         "Newton solve, which fail without it; on the 5K face it costs more than it saves "
                         "(docs/contact.md, \"Lip self-contact\")")
@@ -1272,9 +1274,10 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "mode only (docs/contact.md)")
     p.add_argument("--contact-relaxation", action=argparse.BooleanOptionalAction, default=None,
                    help="with --contact: after each Newton correction the nodes in contact are brought to their "
-                        "own equilibrium by a local Newton, the rest of the face held (off by default and in "
-                        "--fast: tracking at 20K-404K tets paid more for it than it saved; docs/performance.md, "
-                        "\"Contact in tracking\")")
+                        "own equilibrium by a local Newton, the rest of the face held (tracking at 20K-404K tets "
+                        "paid more for it than it saved; docs/performance.md, \"Contact in tracking\"); by "
+                        "default only once a Newton solve crawls on them (the lips peeling apart, \"The lips' "
+                        "opening\"), never with --no-contact-relaxation")
     p.add_argument("--approximate-jacobians", type=float, metavar="MM",
                    help="a Jacobian may use the last factor of the equilibrium solve if it was made at "
                         "a state this close to the equilibrium, instead of a new factorisation, and is "

@@ -157,6 +157,16 @@ DESCENT_ROUND_OFF = 1e-12
 CREEP_STEP = 1.0 / 128.0
 CREEP_LOAD_STEPS = 16
 
+# ``contact_relaxation=None``: the relaxation of the contact nodes starts, for the rest of a Newton
+# solve, once this many corrections in a row were cut by an energy term's collision-free bound with
+# at least CRAWL_CONTACT_SHARE of the residual's square on the contact surfaces' nodes: the lips
+# peeling apart on the 404K face, where one edge-edge pair at the front set every bound and the rest
+# of the face was in equilibrium (89 Newton iterations, 48 factorisations; 17 and 10 relaxed, from
+# the start; docs/performance.md, "The lips' opening"). Well-behaved 404K warm solves had at most 3
+# such corrections in a row, the 5K lips closing from rest 15 with a third of the residual there.
+CRAWL_CUTS = 6
+CRAWL_CONTACT_SHARE = 0.9
+
 # mm: a Dirichlet gap this small is closed by moving the bone nodes, not by more lifting.
 SNAP_DISTANCE = 1e-3
 # mm: a solve has reached its Dirichlet values once no Dirichlet dof is further from its value.
@@ -530,7 +540,7 @@ class QuasistaticSolver:
                  reuse_policy: FactorReusePolicy | None = None, krylov_on_old_factor: bool = False,
                  step_tolerance: float = 1e-8, energy_tolerance: float | None = None,
                  keep_packed_coefficients: bool = False, energy_terms: tuple = (),
-                 contact_relaxation: bool = False, flesh_correction=None):
+                 contact_relaxation: bool | None = None, flesh_correction=None):
         if tangent not in TANGENT_STRUCTURES:
             raise ValueError(f"tangent = {tangent!r}: give one of {', '.join(TANGENT_STRUCTURES)}")
         self.unknown = unknown
@@ -549,6 +559,11 @@ class QuasistaticSolver:
         self._released = math.inf  # energy the last correction would release (R . du / 2, mN mm)
         self._bounding_term = None  # label of the energy term whose bound cut the last correction most
         self._tracing = False  # the Newton trace is on (rank 0's logger, the same on every rank)
+        # True: relax the contact nodes after every correction; None: once Newton crawls on them
+        # (CRAWL_CUTS); False: never.
+        self.contact_relaxation = contact_relaxation
+        self._relaxing = False  # ... after the corrections of this Newton solve
+        self._crawl_cuts = 0  # corrections in a row that a bound cut, the residual on the contact nodes
         self.energy_stops = 0  # Newton solves stopped by energy_tolerance
         self.factorizations = 0     # numerical factorisations so far (a cost counter)
         self.residual_evaluations = 0  # residual assemblies so far (matrix-free products included)
@@ -611,7 +626,8 @@ class QuasistaticSolver:
         self._guard_x, self._guard_step = unknown.vector.duplicate(), unknown.vector.duplicate()
         # Nonlinear elimination of the contact nodes after each correction (relaxation.py).
         self.relaxation = None
-        if contact_relaxation and self.energy_terms:
+        if contact_relaxation is not False and self.energy_terms and all(
+                hasattr(term, "surface") for term in self.energy_terms):
             self.relaxation = ContactRelaxation(
                 residual, jacobian, unknown.function_space, self.energy_terms, unknown.vector,
                 assemble=self._residual_of, full_residual=lambda x, b: self._assemble_residual(self.snes, x, b),
@@ -676,7 +692,7 @@ class QuasistaticSolver:
             self._refuse_exact_terms(x, step)
         if self.energy_terms:
             self._released = 0.5 * self.snes.getFunction()[0].dot(step)
-        relaxed = self.relaxation is not None
+        relaxed = self._relaxing
         if relaxed:
             self._relax_contact_nodes(x, step)
         correction_size = step.norm(PETSc.NormType.NORM_INFINITY)
@@ -778,8 +794,20 @@ class QuasistaticSolver:
             self._guard_cuts, self._initial_fnorm, self._released = 0, fnorm, math.inf
             # (Whether rank 0 traces: the residual's split below is a reduction over the ranks.)
             self._tracing = self.comm.bcast(self.comm.rank == 0 and trace.isEnabledFor(logging.DEBUG), root=0)
+            self._relaxing, self._crawl_cuts = self.relaxation is not None and self.contact_relaxation is True, 0
+        norms = (self._contact_residual_norms(snes.getFunction()[0])
+                 if self._tracing or (self.relaxation is not None and not self._relaxing) else None)
+        if iteration > 0 and norms is not None and not self._relaxing:
+            crawling = policy.step_bound < 1.0 and norms[-1] ** 2 >= CRAWL_CONTACT_SHARE * fnorm ** 2
+            self._crawl_cuts = self._crawl_cuts + 1 if crawling else 0
+            if self.relaxation is not None and self._crawl_cuts >= CRAWL_CUTS:
+                self._relaxing = True
+                if self.comm.rank == 0:
+                    log.debug("Newton: %d corrections in a row cut by the %s's bound, the residual on the contact "
+                              "nodes: relaxing them from here on", self._crawl_cuts, self._bounding_term)
         if self._tracing:
-            split = self._residual_split(snes.getFunction()[0])
+            split = " (" + ", ".join(f"{term.label} {norm:.4g}" for term, norm in zip(
+                self._surface_terms, norms)) + ")" if self._surface_terms else ""
             if self.comm.rank == 0 and iteration == 0:
                 trace.debug("Newton 0: residual %.4g mN%s", fnorm, split)
             elif self.comm.rank == 0:  # what the correction of the iteration before did
@@ -820,16 +848,18 @@ class QuasistaticSolver:
             return reasons.DIVERGED_LINE_SEARCH
         return reasons.CONVERGED_ITERATING
 
-    def _residual_split(self, residual: PETSc.Vec) -> str:
-        """For the trace: the residual's norm on each energy term's contact nodes (collective), where
-        a crawling Newton's residual sits (the lips' peeling front: docs/performance.md)."""
-        terms = [term for term in self.energy_terms if hasattr(term, "surface")]
-        if not terms:
-            return ""
+    @property
+    def _surface_terms(self) -> list:
+        return [term for term in self.energy_terms if hasattr(term, "surface")]
+
+    def _contact_residual_norms(self, residual: PETSc.Vec) -> list[float]:
+        """The residual's norm on the nodes of each energy term that has a contact surface, then on
+        all of them together (collective): where a crawling Newton's residual sits."""
         squares = np.square(residual.array_r).reshape(-1, 3).sum(axis=1)
-        norms = [math.sqrt(self.comm.allreduce(float(squares[term.surface.owned_blocks].sum()), op=MPI.SUM))
-                 for term in terms]
-        return " (" + ", ".join(f"{term.label} {norm:.4g}" for term, norm in zip(terms, norms)) + ")"
+        blocks = [term.surface.owned_blocks for term in self._surface_terms]
+        blocks.append(np.unique(np.concatenate(blocks)) if blocks else np.zeros(0, dtype=np.int32))
+        local = np.array([squares[b].sum() for b in blocks])
+        return np.sqrt(self.comm.allreduce(local, op=MPI.SUM)).tolist()
 
     def assemble_tangent(self, A: PETSc.Mat) -> None:
         """Assemble the tangent at the unknown into ``A`` (Dirichlet rows and columns identity)."""

@@ -224,7 +224,9 @@ class FaceProblem:
     contact_relaxation : with contact, after each Newton correction the nodes a contact term
         pushes on are brought to their own equilibrium by a local Newton, the rest held
         (``equilibrium.relaxation``): fewer factorisations where pressed lips slide
-        (docs/performance.md, "Contact in tracking").
+        (docs/performance.md, "Contact in tracking"). None (default): only once a Newton solve
+        crawls on them (``equilibrium.solver.CRAWL_CUTS``, docs/performance.md, "The lips'
+        opening"); True: after every correction; False: never.
     definite_tangent : Newton's tangent takes each cell's flesh stiffness with its clearly negative
         curvature clamped (``equilibrium.definite``), until Newton is near the solution; the
         equilibrium is the same. None (default): on with lip or teeth contact, where the teeth
@@ -238,7 +240,7 @@ class FaceProblem:
                  newton_energy_tolerance: float | None = None, refresh_contraction: float = REFRESH_CONTRACTION, inversion_guard: bool = True,
                  line_search_iterations: int = 1, intraoral_pressure: bool = False,
                  contact: ContactSettings | None = None, lip_contact: LipContactSettings | None = None,
-                 contact_relaxation: bool = False, definite_tangent: bool | None = None):
+                 contact_relaxation: bool | None = None, definite_tangent: bool | None = None):
         if line_search_iterations < 1:
             raise ValueError(f"line_search_iterations = {line_search_iterations}: give 1 or more")
         self.model = model
@@ -364,7 +366,7 @@ class FaceProblem:
                                    step_tolerance=self.solver.step_tolerance,
                                    energy_tolerance=self.solver.energy_tolerance, keep_packed_coefficients=True,
                                    energy_terms=self.solver.energy_terms,
-                                   contact_relaxation=self.solver.relaxation is not None)
+                                   contact_relaxation=self.solver.contact_relaxation)
         mass = compile_form(inertia.virtual_work(ufl.TrialFunction(self.V), v) * dx)
         kinetic_energy = compile_form(inertia.kinetic_energy(levels.velocity) * dx)
         return DynamicFace(self, settings, solver, levels, mass, kinetic_energy)

@@ -73,9 +73,10 @@ class TrackingSettings:
     # the lips and cheeks rests on the model's teeth (physics/contact.py): ``contact_surfaces``.
     contact: bool = False
     # With contact: the nodes in contact relaxed by a local Newton after each correction
-    # (equilibrium/relaxation.py). Off in --fast: tracking at 20K, 100K and 404K tets paid more
-    # for it than it saved (docs/performance.md, "Contact in tracking").
-    contact_relaxation: bool = False
+    # (equilibrium/relaxation.py). True: after every one, which tracking at 20K, 100K and 404K tets
+    # paid more for than it saved (docs/performance.md, "Contact in tracking"); None: once a Newton
+    # solve crawls on them (the lips peeling apart, "The lips' opening"); False: never.
+    contact_relaxation: bool | None = None
 
     def __post_init__(self):
         checks = (
