@@ -165,6 +165,14 @@ for stretch in 5: 15:_open; do
     --tets 400000 --truth-tets 20000 --head-motion --start ${stretch%%:*} --frames 10 --variants no-contact contact \
     --interleave --max-seconds 1500 --abort-seconds 3000
 done
+# The lips' opening traced (which term cut each correction; the residual on the contact nodes), then with
+# the contact nodes relaxed once Newton crawls on them (QuasistaticSolver(contact_relaxation=None)).
+record $RESULTS/contact/opening_trace_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --start 5 --frames 10 --variants contact \
+  --max-seconds 1500 --abort-seconds 3000 -v --trace-newton 2> $RESULTS/contact/opening_trace_404k_np2.log
+record $RESULTS/contact/crawl_relaxation_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --start 5 --frames 10 --variants no-contact contact \
+  --interleave --max-seconds 1500 --abort-seconds 3000 -v --trace-newton 2> $RESULTS/contact/crawl_relaxation_404k_np2.log
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
