@@ -163,7 +163,8 @@ CREEP_LOAD_STEPS = 16
 # peeling apart on the 404K face, where one edge-edge pair at the front set every bound and the rest
 # of the face was in equilibrium (89 Newton iterations, 48 factorisations; 17 and 10 relaxed, from
 # the start; docs/performance.md, "The lips' opening"). Well-behaved 404K warm solves had at most 3
-# such corrections in a row, the 5K lips closing from rest 15 with a third of the residual there.
+# such corrections in a row; the 5K lips closing from rest had 15, with about 15 % of the residual's
+# square on the lips.
 CRAWL_CUTS = 6
 CRAWL_CONTACT_SHARE = 0.9
 
@@ -519,7 +520,8 @@ class QuasistaticSolver:
     whose rows and columns it leaves alone) and ``step_fraction(x, step, largest)`` (the largest t in
     (0, 1] such that x - s t largest step stays admissible for s in [0, 1]); x is the unknown's PETSc
     vector, all collective; ``label`` names it in the Newton trace, which also gives the residual's
-    norm on the nodes of each term that has a ``surface`` (its ``ContactSurface``). A term whose Hessian couples nodes that share no element also has
+    norm on the nodes of each term that has a ``surface`` (its ``ContactSurface``; the relaxation of
+    the contact nodes needs it). A term whose Hessian couples nodes that share no element also has
     ``coupled_blocks()``, (k, 2) global node pairs: the tangent is built with room for them
     (``widened_tangent``). A term may change Newton's tangent (not the sensitivities'):
     ``add_newton_correction(x, A, constrained)``, True if it did, taken at every factorisation, or
@@ -531,6 +533,9 @@ class QuasistaticSolver:
     ``flesh_correction`` (``definite.DefiniteFleshTangent``) changes Newton's tangent of the UFL
     energy itself the same way (with ``exact_near_solution``); its ``constrained`` are all local
     Dirichlet dofs, ghosts included, since it adds the stiffness of cells that share them.
+    ``contact_relaxation``: True relaxes the contact nodes after every Newton correction
+    (``relaxation.ContactRelaxation``), None from the correction at which a solve crawls on them
+    (``CRAWL_CUTS``), False never.
     """
 
     def __init__(self, residual: ufl.Form, unknown: fem.Function, bcs: list, *, tangent: str,
@@ -803,8 +808,8 @@ class QuasistaticSolver:
             if self.relaxation is not None and self._crawl_cuts >= CRAWL_CUTS:
                 self._relaxing = True
                 if self.comm.rank == 0:
-                    log.debug("Newton: %d corrections in a row cut by the %s's bound, the residual on the contact "
-                              "nodes: relaxing them from here on", self._crawl_cuts, self._bounding_term)
+                    log.debug("Newton: %d corrections in a row cut by a bound (the last by the %s), the residual on "
+                              "the contact nodes: relaxing them from here on", self._crawl_cuts, self._bounding_term)
         if self._tracing:
             split = " (" + ", ".join(f"{term.label} {norm:.4g}" for term, norm in zip(
                 self._surface_terms, norms)) + ")" if self._surface_terms else ""
