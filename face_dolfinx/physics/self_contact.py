@@ -171,6 +171,10 @@ class LipContact:
     # 75 with the exact Hessian always (docs/contact.md, "Newton with pressed lips").
     exact_near_solution = True
     label = "lips"  # names the term in the Newton trace
+    # A Newton solve whose corrections this bound cuts again and again, the residual on the contact
+    # nodes, relaxes them (QuasistaticSolver, CRAWL_CUTS): the lips peeling apart, an edge-edge
+    # pair at the front setting every bound (docs/performance.md, "The lips' opening").
+    relax_on_crawl = True
 
     def __init__(self, space: fem.FunctionSpace, upper: np.ndarray, lower: np.ndarray, up: np.ndarray,
                  settings: LipContactSettings, constrained_blocks: np.ndarray):
