@@ -164,8 +164,8 @@ CREEP_LOAD_STEPS = 16
 # peeling apart on the 404K face, where one edge-edge pair at the front set every bound and the rest
 # of the face was in equilibrium (89 Newton iterations, 48 factorisations; 17 and 10 relaxed, from
 # the start; docs/performance.md, "The lips' opening"). Well-behaved 404K warm solves had at most 3
-# such corrections in a row; the 5K lips closing from rest had 15, with about 15 % of the residual's
-# square on the lips. (Cuts by the teeth's bound do not count: on the 5K face they started it in a
+# such corrections in a row; the 5K lips closing from rest had 15 and more, with about 15 % of the
+# residual's square on the lips. (Cuts by the teeth's bound do not count: on the 5K face they started it in a
 # solve from rest, which then reached another equilibrium of the pressed lining, from which a
 # prediction's Newton failed, tests/test_teeth.py.)
 CRAWL_CUTS = 6
