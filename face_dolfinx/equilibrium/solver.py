@@ -160,14 +160,14 @@ CREEP_LOAD_STEPS = 16
 # ``contact_relaxation=None``: the relaxation of the contact nodes starts, for the rest of a Newton
 # solve, once this many corrections in a row were cut by the collision-free bound of an energy term
 # that says ``relax_on_crawl`` (the lips') with at least CRAWL_CONTACT_SHARE of the residual's square
-# on the contact surfaces' nodes: the lips
-# peeling apart on the 404K face, where one edge-edge pair at the front set every bound and the rest
-# of the face was in equilibrium (89 Newton iterations, 48 factorisations; 17 and 10 relaxed, from
-# the start; docs/performance.md, "The lips' opening"). Well-behaved 404K warm solves had at most 3
-# such corrections in a row; the 5K lips closing from rest had 15 and more, with about 15 % of the
-# residual's square on the lips. (Cuts by the teeth's bound do not count: on the 5K face they started it in a
-# solve from rest, which then reached another equilibrium of the pressed lining, from which a
-# prediction's Newton failed, tests/test_teeth.py.)
+# on the contact surfaces' nodes: the lips peeling apart on the 404K face, where one edge-edge pair
+# at the front set every bound and the rest of the face was in equilibrium (89 Newton iterations,
+# 48 factorisations; 17 and 10 relaxed, from the start; docs/performance.md, "The lips' opening").
+# Well-behaved 404K warm solves had at most 3 such corrections in a row; the 5K lips closing from
+# rest had 15 and more, with about 15 % of the residual's square on the lips. (Cuts by the teeth's
+# bound do not count: on the 5K face they started it in a solve from rest, which then reached
+# another equilibrium of the pressed lining, from which a prediction's Newton failed,
+# tests/test_teeth.py.)
 CRAWL_CUTS = 6
 CRAWL_CONTACT_SHARE = 0.9
 
@@ -555,6 +555,11 @@ class QuasistaticSolver:
         self.unknown = unknown
         self.inversion_guard = inversion_guard
         self.energy_terms = tuple(energy_terms)
+        # The terms with a contact surface, and their nodes on this rank, all surfaces' last.
+        self._surface_terms = [term for term in self.energy_terms if hasattr(term, "surface")]
+        self._surface_blocks = [term.surface.owned_blocks for term in self._surface_terms]
+        if self._surface_blocks:
+            self._surface_blocks.append(np.unique(np.concatenate(self._surface_blocks)))
         # Newton's change to the flesh's own tangent (``definite.DefiniteFleshTangent``) or None.
         self.flesh_correction = flesh_correction
         self.reuse_policy = reuse_policy if reuse_policy is not None else FactorReusePolicy()
@@ -635,8 +640,7 @@ class QuasistaticSolver:
         self._guard_x, self._guard_step = unknown.vector.duplicate(), unknown.vector.duplicate()
         # Nonlinear elimination of the contact nodes after each correction (relaxation.py).
         self.relaxation = None
-        if contact_relaxation is not False and self.energy_terms and all(
-                hasattr(term, "surface") for term in self.energy_terms):
+        if contact_relaxation is not False and self.energy_terms and len(self._surface_terms) == len(self.energy_terms):
             self.relaxation = ContactRelaxation(
                 residual, jacobian, unknown.function_space, self.energy_terms, unknown.vector,
                 assemble=self._residual_of, full_residual=lambda x, b: self._assemble_residual(self.snes, x, b),
@@ -804,13 +808,14 @@ class QuasistaticSolver:
             # (Whether rank 0 traces: the residual's split below is a reduction over the ranks.)
             self._tracing = self.comm.bcast(self.comm.rank == 0 and trace.isEnabledFor(logging.DEBUG), root=0)
             self._relaxing, self._crawl_cuts = self.relaxation is not None and self.contact_relaxation is True, 0
-        norms = (self._contact_residual_norms(snes.getFunction()[0])
-                 if self._tracing or (self.relaxation is not None and not self._relaxing) else None)
-        if iteration > 0 and norms is not None and not self._relaxing:
-            crawling = (policy.step_bound < 1.0 and getattr(self._bounding_term, "relax_on_crawl", False)
-                        and norms[-1] ** 2 >= CRAWL_CONTACT_SHARE * fnorm ** 2)
+        # Only a correction that such a term's bound cut needs the residual's split (a reduction).
+        watched = (iteration > 0 and self.relaxation is not None and not self._relaxing and policy.step_bound < 1.0
+                   and getattr(self._bounding_term, "relax_on_crawl", False))
+        norms = self._contact_residual_norms(snes.getFunction()[0]) if self._tracing or watched else None
+        if iteration > 0 and self.relaxation is not None and not self._relaxing:
+            crawling = watched and norms[-1] ** 2 >= CRAWL_CONTACT_SHARE * fnorm ** 2
             self._crawl_cuts = self._crawl_cuts + 1 if crawling else 0
-            if self.relaxation is not None and self._crawl_cuts >= CRAWL_CUTS:
+            if self._crawl_cuts >= CRAWL_CUTS:
                 self._relaxing = True
                 if self.comm.rank == 0:
                     log.debug("Newton: %d corrections in a row cut by the %s' bound, the residual on the contact "
@@ -858,17 +863,11 @@ class QuasistaticSolver:
             return reasons.DIVERGED_LINE_SEARCH
         return reasons.CONVERGED_ITERATING
 
-    @property
-    def _surface_terms(self) -> list:
-        return [term for term in self.energy_terms if hasattr(term, "surface")]
-
     def _contact_residual_norms(self, residual: PETSc.Vec) -> list[float]:
         """The residual's norm on the nodes of each energy term that has a contact surface, then on
         all of them together (collective): where a crawling Newton's residual sits."""
         squares = np.square(residual.array_r).reshape(-1, 3).sum(axis=1)
-        blocks = [term.surface.owned_blocks for term in self._surface_terms]
-        blocks.append(np.unique(np.concatenate(blocks)) if blocks else np.zeros(0, dtype=np.int32))
-        local = np.array([squares[b].sum() for b in blocks])
+        local = np.array([squares[blocks].sum() for blocks in self._surface_blocks])
         return np.sqrt(self.comm.allreduce(local, op=MPI.SUM)).tolist()
 
     def assemble_tangent(self, A: PETSc.Mat) -> None:
