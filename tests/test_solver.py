@@ -142,6 +142,36 @@ def test_with_energy_terms_a_slow_residual_cut_keeps_a_factor_whose_energy_norm_
     assert newton(plain, [(1e4, 1.0, False), (8e3, 1.0, False), (7e3, 1.0, False)]) == [False, True, False]
 
 
+def test_where_the_solver_relaxes_the_contact_nodes_instead_a_slow_fall_keeps_the_factor():
+    """``relaxes_instead`` is asked only where the residual's slow fall alone would refresh the
+    factor (not at a solve's start, not after a fast cut, not after a cut step); where it says the
+    solver relaxes the contact nodes instead, the factor is kept and counts as old."""
+    policy = FactorReusePolicy(across_solves=True, refresh_contraction=0.25)
+    asked, answers = [], iter([False, True])
+
+    def relaxes_instead():
+        asked.append(k)
+        return next(answers)
+
+    steps = [(1e4, 1.0, False), (8e3, 1.0, False), (7e3, 1.0, False), (1e3, 1.0, True), (9e2, 1.0, False),
+             (8e2, 1.0, False), (7e2, 1.0, False)]
+    kept = []
+    policy.start_solve()
+    for k, (norm, correction, cut) in enumerate(steps):
+        policy.record_residual(k, norm)
+        keep = policy.keep_factor(k, None, relaxes_instead=relaxes_instead)
+        if not keep:
+            policy.factorised(in_newton=True)
+        kept.append(keep)
+        policy.record_correction(correction, cut)
+    # 0: no factor; 1: a fresh factor's next iteration; 2: x0.875 from the old one, the solver does
+    # not relax: refreshed; 3: x0.14, kept without asking, its step cut; 4: slow (x0.9) after that cut:
+    # refreshed without asking; 5: the fresh factor's next iteration; 6: slow, the solver relaxes: kept.
+    assert kept == [False, True, False, True, False, True, True]
+    assert asked == [2, 6]
+    assert not policy.fresh_factor
+
+
 def test_a_correction_cut_short_by_a_contact_bound_refreshes_the_old_factor_whatever_its_energy_norm():
     """The old factor's correction that a collision-free bound cut below ``judged_step_bound`` of its
     length (pairs that came close since the factor was made, whose barrier it does not hold) refreshes

@@ -473,6 +473,31 @@ def test_a_cut_prediction_keeps_the_heads_whole_motion(model, pressed):
     assert starts[True] < 1e-9 * motion < starts[False] and starts[False] > 0.5 * motion
 
 
+def test_a_slow_fall_on_the_teeth_relaxes_the_contact_nodes_instead_of_refactorising(model, pressed, caplog):
+    """With the factor kept across solves, the default ``contact_relaxation`` (None) starts the
+    relaxation of the contact nodes where the residual's slow fall would refresh the factor while
+    the teeth's contact nodes hold SLOW_FALL_CONTACT_SHARE of the residual's square, and keeps the
+    factor there: the orbicularis oris raised by half from the lips pressed on the teeth (a warm
+    start). It reaches the equilibrium Newton reaches without it, with fewer factorisations (3
+    against 9), no lining node ever inside the teeth."""
+    start, _, _ = pressed
+    solved = {}
+    for relaxation in (None, False):
+        problem = FaceProblem(model, contact=ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS),
+                              reuse_factorization=True, contact_relaxation=relaxation)
+        problem.adopt(start.controls, start.u.x.array)
+        with caplog.at_level("DEBUG", logger="face_dolfinx.equilibrium.solver"):
+            assert problem.solve(activations=orbicularis_oris(model, 1.5 * LEVEL)).converged
+        started = any("the factor kept" in record.getMessage() for record in caplog.records)
+        caplog.clear()
+        solved[relaxation] = problem, MPI.COMM_WORLD.bcast(started)
+    (relaxed, started), (plain, plain_started) = solved[None], solved[False]
+    assert started and not plain_started and relaxed.solver.relaxation.local_iterations > 0
+    assert relaxed.solver.factorizations < plain.solver.factorizations
+    assert np.abs(relaxed.u.x.array - plain.u.x.array).max() < 1e-4  # mm
+    assert relaxed.teeth_contact.min_gap(relaxed.u.x.array) > 0.0
+
+
 def test_same_force_on_one_rank(model, builtin_model_path, pressed):
     problem = pressed[0]
     serial = FaceProblem(load_model(builtin_model_path, MPI.COMM_SELF),

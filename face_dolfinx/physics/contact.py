@@ -400,6 +400,11 @@ class ContactPotential:
     """The barrier energy of a contact surface against rigid objects at given poses, as an extra
     energy term of the equilibrium solver (see the module docstring). Poses: ``set_poses``."""
 
+    # A Newton solve whose residual falls slowly with the residual on this surface's nodes relaxes
+    # them instead of refactorising (QuasistaticSolver, ``_relaxes_instead``): the lining settling
+    # on the teeth (docs/performance.md, "Settling on the teeth").
+    relax_on_slow_fall = True
+
     def __init__(self, space: fem.FunctionSpace, facets: np.ndarray, settings: ContactSettings, label: str = "objects"):
         if not settings.dhat > 0.0 or not settings.stiffness > 0.0:
             raise ValueError(f"{settings.where}: dhat and the stiffness must be positive "
