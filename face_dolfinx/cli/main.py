@@ -1070,7 +1070,8 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--contact-relaxation", action=argparse.BooleanOptionalAction, default=None,
                    help="with --contact or --object: after each Newton correction the nodes in contact are brought "
                         "to their own equilibrium by a local Newton, the rest of the face held (fit "
-                        "--contact-relaxation; by default only once a Newton solve crawls on them, never with "
+                        "--contact-relaxation; by default only once a Newton solve crawls on them or its residual "
+                        "falls slowly on the teeth's nodes, never with "
                         "--no-contact-relaxation); "
                         "with --newton-energy-tolerance 10 the lips closed hard on the 404K face without a failed "
                         "Newton solve, which fail without it; on the 5K face it costs more than it saves "
@@ -1277,7 +1278,8 @@ def parse_arguments(argv=None) -> tuple[argparse.Namespace, list[str]]:
                         "own equilibrium by a local Newton, the rest of the face held (tracking at 20K-404K tets "
                         "paid more for it than it saved; docs/performance.md, \"Contact in tracking\"); by "
                         "default only once a Newton solve crawls on them (the lips peeling apart, \"The lips' "
-                        "opening\"), never with --no-contact-relaxation")
+                        "opening\") or its residual falls slowly on the teeth's nodes (\"Settling on the teeth\"), "
+                        "never with --no-contact-relaxation")
     p.add_argument("--approximate-jacobians", type=float, metavar="MM",
                    help="a Jacobian may use the last factor of the equilibrium solve if it was made at "
                         "a state this close to the equilibrium, instead of a new factorisation, and is "

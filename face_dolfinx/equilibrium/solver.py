@@ -552,8 +552,10 @@ class QuasistaticSolver:
     Dirichlet dofs, ghosts included, since it adds the stiffness of cells that share them.
     ``contact_relaxation``: True relaxes the contact nodes after every Newton correction
     (``relaxation.ContactRelaxation``), None from the correction at which a solve crawls on them,
-    its corrections cut by the bound of a term that says ``relax_on_crawl`` (``CRAWL_CUTS``), False
-    never.
+    its corrections cut by the bound of a term that says ``relax_on_crawl`` (``CRAWL_CUTS``), or,
+    with the factor kept across solves, at which the residual's slow fall on the nodes of a term
+    that says ``relax_on_slow_fall`` would refresh the factor (``SLOW_FALL_CONTACT_SHARE``; the
+    factor is kept there), False never.
     """
 
     def __init__(self, residual: ufl.Form, unknown: fem.Function, bcs: list, *, tangent: str,
@@ -588,7 +590,7 @@ class QuasistaticSolver:
         self._bounding_term = None  # the energy term whose bound cut the last correction most
         self._tracing = False  # the Newton trace is on (rank 0's logger, the same on every rank)
         # True: relax the contact nodes after every correction; None: once Newton crawls on them
-        # (CRAWL_CUTS); False: never.
+        # (CRAWL_CUTS) or the residual falls slowly on the teeth's (SLOW_FALL_CONTACT_SHARE); False: never.
         self.contact_relaxation = contact_relaxation
         self._relaxing = False  # ... after the corrections of this Newton solve
         self._crawl_cuts = 0  # corrections in a row that a bound cut, the residual on the contact nodes

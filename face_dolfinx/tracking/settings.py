@@ -75,7 +75,8 @@ class TrackingSettings:
     # With contact: the nodes in contact relaxed by a local Newton after each correction
     # (equilibrium/relaxation.py). True: after every one, which tracking at 20K, 100K and 404K tets
     # paid more for than it saved (docs/performance.md, "Contact in tracking"); None: once a Newton
-    # solve crawls on them (the lips peeling apart, "The lips' opening"); False: never.
+    # solve crawls on them (the lips peeling apart, "The lips' opening") or its residual falls
+    # slowly on the teeth's nodes ("Settling on the teeth"); False: never.
     contact_relaxation: bool | None = None
 
     def __post_init__(self):
