@@ -461,9 +461,9 @@ class FactorReusePolicy:
             if not self.fresh_factor:
                 contracting = iteration > 0 and self.two_step_contraction <= self.refresh_contraction
             keep = contracting and self.correction_size < self.converging_correction
-        keep = keep and self.has_factor and not self.step_was_cut
-        if (not keep and relaxes_instead is not None and self.across_solves and iteration > 0 and self.has_factor
-                and not self.step_was_cut):
+        usable = self.has_factor and not self.step_was_cut
+        keep = keep and usable
+        if not keep and usable and relaxes_instead is not None and self.across_solves and iteration > 0:
             keep = relaxes_instead()
         self.fresh_factor = not keep
         return keep
@@ -825,10 +825,10 @@ class QuasistaticSolver:
             self._tracing = self.comm.bcast(self.comm.rank == 0 and trace.isEnabledFor(logging.DEBUG), root=0)
             self._relaxing, self._crawl_cuts = self.relaxation is not None and self.contact_relaxation is True, 0
         # Only a correction that such a term's bound cut needs the residual's split (a reduction).
-        watched = (iteration > 0 and self.relaxation is not None and not self._relaxing and policy.step_bound < 1.0
-                   and getattr(self._bounding_term, "relax_on_crawl", False))
+        may_start = iteration > 0 and self._may_start_relaxing()
+        watched = may_start and policy.step_bound < 1.0 and getattr(self._bounding_term, "relax_on_crawl", False)
         norms = self._contact_residual_norms(snes.getFunction()[0]) if self._tracing or watched else None
-        if iteration > 0 and self.relaxation is not None and not self._relaxing:
+        if may_start:
             crawling = watched and norms[-1] ** 2 >= CRAWL_CONTACT_SHARE * fnorm ** 2
             self._crawl_cuts = self._crawl_cuts + 1 if crawling else 0
             if self._crawl_cuts >= CRAWL_CUTS:
