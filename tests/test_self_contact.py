@@ -345,6 +345,36 @@ def test_held_lip_nodes_keep_the_identitys_rows_and_columns(pressed):
     assert (held_out[[2, 5]] > 0.0).all()
 
 
+def test_a_lower_lip_pushed_into_the_upper_pushes_it_along(pressed):
+    """The lower lip's pressed nodes pushed 0.3 mm up (as the closing teeth push the lining out of
+    their way) would pass through the upper lip: ``pushed_along`` moves the nodes of the pairs
+    that would pass each other along with the pushed ones (the upper lip's among them), and the
+    lips then pass each other nowhere on the way; the pushed nodes keep their move."""
+    lips, start = pressed.lips, pressed.u.x.array
+    x = lips.positions(start)
+    touching = np.flatnonzero(np.linalg.norm(lips.nodal_forces(start), axis=1) > 0.0)
+    lower_only = np.setdiff1d(lips.lower_nodes, lips.upper_nodes)
+    pushed = np.intersect1d(touching, lower_only)
+    assert pushed.size > 5
+    moved = x.copy()
+    moved[pushed] += 0.3 * lips.up
+    end = lips.surface.placed(start, moved, pushed)
+    assert lips.admissible_fraction(start, end) < 0.5
+
+    mended = lips.pushed_along(start, end)
+    assert mended is not None and lips.admissible_fraction(start, mended) == 1.0
+    assert not lips.intersects(mended)
+    y = lips.positions(mended)
+    move = y - x
+    assert np.allclose(move[pushed], 0.3 * lips.up)
+    along = np.flatnonzero(np.linalg.norm(move, axis=1) > 0.0)
+    others = np.setdiff1d(along, pushed)
+    assert np.isin(others, lips.upper_nodes).any()
+    assert np.allclose(move[others], 0.3 * lips.up)  # the move of a pushed node
+    # ... a move the lips already allow is returned as it is
+    assert lips.pushed_along(start, mended) is mended
+
+
 def test_activation_columns_with_pressed_lips(pressed, model):
     """dX/da by the solver's factor (the lips' Hessian included) against central differences, at
     lips pressed by the orbicularis oris at 0.9 with the depressor anguli oris at 0.2."""
@@ -500,13 +530,16 @@ def test_lip_nodes_the_teeth_overrun_start_the_carry_outside_them(model, monkeyp
     assert problem.teeth_contact.min_gap(problem.u.x.array) > 0.0
 
 
-def test_a_push_out_through_the_lips_is_not_solved_from(model, monkeypatch):
+@pytest.mark.parametrize("mended", [True, False], ids=["pushed-along", "refused"])
+def test_a_push_out_through_the_lips_pushes_the_other_lip_along_or_is_not_solved_from(model, monkeypatch, caplog,
+                                                                                       mended):
     """Before Newton starts from a predicted shape the teeth move to their new poses and push the
     lining out of their way (``ContactPotential.move_to``), which knows nothing of the lips: on the
     5K face's bilabial take with the head moving it took pressed lower-lip nodes 0.03 mm through the
-    upper lip, and Newton went on with the lips intersecting. Such a start is refused and the solve
-    goes on from the last equilibrium, and a load step of the continuation with such a start fails
-    as a failed solve would. Here the push-out takes the lower lip 0.05 mm up, once in each case."""
+    upper lip. The upper lip is pushed along (``LipContact.pushed_along``) and Newton starts from
+    there; where that cannot be done (here made so), the start is refused and the solve goes on
+    from the last equilibrium, and a load step of the continuation with such a start fails as a
+    failed solve would. Here the push-out takes the lower lip 0.05 mm up, once in each case."""
     problem = FaceProblem(model, **truth_contact_options(model, "lips+teeth", where="test"))
     activations, tmj, head = control_curves(model, "bilabial", 60, head_motion=False)
 
@@ -531,13 +564,26 @@ def test_a_push_out_through_the_lips_is_not_solved_from(model, monkeypatch):
 
     monkeypatch.setattr(teeth, "push_out", through_the_lips)
     monkeypatch.setattr(teeth, "closes_in", lambda displacement, old_poses, new_poses: True)
+    if not mended:
+        monkeypatch.setattr(lips, "pushed_along", lambda start, end: None)
+    distances = []
+    problem.solver.snes.setMonitor(lambda snes, it, norm: distances.append(lips.min_distance(snes.getSolution().array_r)))
     # From a predicted shape (the last equilibrium), then by continuation alone.
     for k, guess in ((7, problem.u.x.array.copy()), (8, None)):
         pushed.clear()
-        report = problem.solve(guess=guess, **frame(k))
-        assert report.converged
-        assert pushed[0] == 0.0 and len(pushed) > 1  # the first push went through, and was not solved from
+        with caplog.at_level("DEBUG", logger="face_dolfinx.physics.problem"):
+            caplog.clear()
+            report = problem.solve(guess=guess, **frame(k))
+        assert report.converged and pushed[0] == 0.0  # the first push went through the upper lip
+        if mended:
+            assert "other lip pushed along" in caplog.text and "lips intersect" not in caplog.text
+            assert len(pushed) == 1 and report.load_steps == 1  # ... and was solved from, pushed along
+        else:
+            assert len(pushed) > 1  # ... and was not solved from
         assert lips.min_distance(problem.u.x.array) > 0.0 and lips.penetration(problem.u.x.array) == 0.0
+    problem.solver.snes.cancelMonitor()
+    if mended:
+        assert min(distances) > 0.0  # no Newton iterate with the lips intersecting
 
 
 def test_the_step_bound_stops_short_of_intersecting_lips(pressed, monkeypatch):

@@ -77,6 +77,9 @@ TEETH_DHAT = 0.5
 # (``ContactPotential.carry``).
 CARRY_REACH = 2.0
 
+# mm: a node whose move is shorter than this has not moved (round-off of positions and displacements).
+UNMOVED = 1e-9
+
 # Reference tetrahedron (basix): facet i is opposite vertex i; edge e joins these vertices.
 _TET_EDGES = ((2, 3), (1, 3), (1, 2), (0, 3), (0, 2), (0, 1))
 
@@ -753,7 +756,7 @@ class ContactPotential:
         return out, np.flatnonzero(held)
 
     def carry(self, poses, solver, reach: float, free_blocks: np.ndarray | None = None,
-              admissible: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> int:
+              mend: Callable[[np.ndarray, np.ndarray], np.ndarray | None] | None = None) -> int:
         """Put the objects at ``poses``, carrying along the surface nodes that rest on them: every
         node within ``reach`` (mm) of an object at its present pose, and every farther one that the
         object at its new pose would leave closer than PUSH_GAP * dhat (the teeth closing onto the
@@ -767,10 +770,11 @@ class ContactPotential:
         (of any rank) are never held: the lips' nodes, which the lips' barrier must keep out of
         the other lip (moved rigidly with the lower teeth, the lower lip's lining went through the
         upper lip). Those of them that an object's new pose would leave closer than the gap they
-        have now (or PUSH_GAP * dhat) start the solve moved out along its normal to that gap where
-        ``admissible(start, end)`` (dof arrays) accepts the move, e.g. the lips do not pass each
-        other: left where they were, lip nodes inside the teeth gave the solve no finite residual
-        (the lips' second closure, docs/performance.md). Returns the Newton iterations it took."""
+        have now (or PUSH_GAP * dhat) start the solve moved out along its normal to that gap, as
+        ``mend(start, end)`` (dof arrays) makes that move admissible (the end it returns, e.g. with
+        the other lip pushed along; None: not moved): left where they were, lip nodes inside the
+        teeth gave the solve no finite residual (the lips' second closure, docs/performance.md).
+        Returns the Newton iterations it took."""
         u = solver.unknown
         gaps = self.gaps(u.x.array, within=reach)
         # A node farther than ``reach`` that an object's new pose overruns goes with that object.
@@ -780,9 +784,9 @@ class ContactPotential:
             free = self.surface.flagged(free_blocks)
             carried &= ~free
             overrun_free = overrun & free
-            if admissible is not None and overrun_free.any():
-                moved = self._kept_clear(u.x.array, overrun_free, gaps, poses)
-                if admissible(u.x.array, moved):
+            if mend is not None and overrun_free.any():
+                moved = self._mended(mend, u.x.array, self._kept_clear(u.x.array, overrun_free, gaps, poses), poses)
+                if moved is not None:
                     u.x.array[:] = moved
                 else:
                     log.debug("carry: %d free nodes that the new poses overrun not moved out (not admissible)",
@@ -824,17 +828,32 @@ class ContactPotential:
                 x[chosen] += np.maximum(wanted - gap, 0.0)[:, None] * normal
         return self.surface.placed(displacement, x, np.flatnonzero(nodes.any(axis=0)))
 
-    def move_to(self, poses, solver) -> int:
+    def _mended(self, mend, start: np.ndarray, end: np.ndarray, poses) -> np.ndarray | None:
+        """``mend(start, end)``, unless it is None or puts a node it moves inside an object at
+        ``poses`` (collective)."""
+        mended = mend(start, end)
+        if mended is None:
+            return None
+        moved = np.linalg.norm(self.positions(mended) - self.positions(start), axis=1) > UNMOVED
+        return mended if (self.gaps(mended, poses, within=self.dhat)[:, moved] > 0.0).all() else None
+
+    def move_to(self, poses, solver, mend: Callable[[np.ndarray, np.ndarray], np.ndarray | None] | None = None) -> int:
         """Put the objects at ``poses``, first pushing the surface out of them (``push_out``) and
         carrying the flesh along by a Newton solve of ``solver`` (whose unknown is the displacement)
         with the pushed nodes and their neighbourhood held where they are put: that spreads the dent smoothly into the
         flesh, as the lifting of a bone motion does, where Newton from the bare push-out crawls in
         collision-limited steps while the flesh pulls the dent back node by node. The state it
-        leaves overlaps no object; the solve that follows releases the nodes. Returns the Newton
-        iterations it took."""
+        leaves overlaps no object; the solve that follows releases the nodes. ``mend(start, end)``
+        (dof arrays), if given, takes the push-out's move and returns it admissible (e.g. with the
+        other lip pushed along out of the pushed lip's way; None: the push-out as it is). Returns
+        the Newton iterations it took."""
         u = solver.unknown
+        before = u.x.array.copy()
         u.x.array[:], nodes = self.push_out(u.x.array, poses)
         u.x.scatter_forward()
+        mended = self._mended(mend, before, u.x.array, poses) if mend is not None else None
+        if mended is not None:
+            u.x.array[:] = mended
         self.set_poses(poses)
         solver.controls_changed()
         if not nodes.size:

@@ -48,7 +48,7 @@ from face_dolfinx.model.regions import material_fields
 from face_dolfinx.equilibrium.definite import DefiniteFleshTangent
 from face_dolfinx.equilibrium.solver import (REFRESH_CONTRACTION, FactorReusePolicy, InversionGuard,
                                              QuasistaticSolver, SolveReport, compile_form)
-from face_dolfinx.physics.contact import CARRY_REACH, ContactPotential, ContactSettings
+from face_dolfinx.physics.contact import CARRY_REACH, UNMOVED, ContactPotential, ContactSettings
 from face_dolfinx.physics.face_contact import FACE_NEWTON_ITERATIONS, FaceContactPotential
 from face_dolfinx.physics.object_features import contact_potential
 from face_dolfinx.physics.self_contact import LIP_NEWTON_ITERATIONS, LipContact, LipContactSettings, lip_facets
@@ -668,7 +668,8 @@ class FaceProblem:
         projected = self.teeth_contact.projected_end(equilibrium, end, poses, PROJECTION_LIMIT)
         if projected is None:
             return None
-        if not self._admissible_move(equilibrium, projected):
+        projected = self._mended_move(end, projected, origin=equilibrium)
+        if projected is None:
             log.debug("prediction's lining not moved out of the teeth: the move flattens a cell or lets the lips "
                       "pass each other")
             return None
@@ -685,6 +686,26 @@ class FaceProblem:
         if self.solver.inversion_guard.step_fraction(start, start - end) < 1.0:
             return False
         return self.lips is None or self.lips.admissible_fraction(start, end) == 1.0
+
+    def _mended_move(self, start: np.ndarray, end: np.ndarray, origin: np.ndarray | None = None) -> np.ndarray | None:
+        """``end``, a push of lining nodes from the displacement ``start`` out of the teeth's or an
+        object's way, if the move to it from ``origin`` (default ``start``) is admissible
+        (``_admissible_move``), else with the other lip pushed along (``LipContact.pushed_along``)
+        if that makes it so, else None (collective). The lips pressed on each other in front of
+        the closing teeth: the lower lip's nodes pushed out of the teeth's way went into the upper
+        lip, and each such start failed (the lips' second closure, docs/performance.md)."""
+        origin = start if origin is None else origin
+        if self._admissible_move(origin, end):
+            return end
+        if self.lips is None or self.solver.inversion_guard.step_fraction(origin, origin - end) < 1.0:
+            return None
+        pushed = self.lips.pushed_along(start, end)
+        if pushed is None or not self._admissible_move(origin, pushed):
+            log.debug("lining not pushed out: the other lip would pass it, pushed along or not")
+            return None
+        along = np.linalg.norm(self.lips.positions(pushed) - self.lips.positions(end), axis=1) > UNMOVED
+        log.debug("lining pushed out with %d nodes of the other lip pushed along", np.count_nonzero(along))
+        return pushed
 
     def _carried_with_head(self, start: Controls, target: Controls) -> Controls:
         """Before a prediction with lip or teeth contact is bounded: carry the equilibrium (and the
@@ -725,7 +746,8 @@ class FaceProblem:
         take more of a lining node's gap than a collision-free step may and leave it closer than
         PUSH_GAP dhat (the bones closing in on the lining), else with the bone frames in the solve.
         Returns the Newton iterations it took."""
-        iterations = self.contact.move_to(controls.objects, self.solver) if self.contact is not None else 0
+        mend = self._mended_move if self.lips is not None else None
+        iterations = self.contact.move_to(controls.objects, self.solver, mend) if self.contact is not None else 0
         if self.teeth_contact is not None and before is not None and not before.jaw.same_as(controls.jaw):
             self.set_controls(controls)
             # The unknown went along the cranium's change already: so did the teeth it rests on.
@@ -733,11 +755,11 @@ class FaceProblem:
             self.teeth_contact.set_poses(tuple(change.compose(pose) for pose in self.teeth_poses(before)))
             lips = self.lips.surface.local_blocks if self.lips is not None else None
             return iterations + self.teeth_contact.carry(self.teeth_poses(controls), self.solver, CARRY_REACH,
-                                                         free_blocks=lips, admissible=self._admissible_move)
+                                                         free_blocks=lips, mend=self._mended_move)
         if self.teeth_contact is not None:
             poses = self.teeth_poses(controls)
             if self.teeth_contact.closes_in(self.u.x.array, self.teeth_contact.poses, poses):
-                iterations += self.teeth_contact.move_to(poses, self.solver)
+                iterations += self.teeth_contact.move_to(poses, self.solver, mend)
         return iterations
 
     def active_force(self, muscle: int, out: PETSc.Vec | None = None) -> PETSc.Vec:

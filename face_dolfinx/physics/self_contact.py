@@ -83,6 +83,10 @@ PATTERN_SLIDE = 3.0
 _UPPER, _LOWER = 1, 2
 _FIRST_PRIMITIVE = {"vv_collisions": 1, "ev_collisions": 1, "ee_collisions": 2, "fv_collisions": 1}
 
+# Rounds of ``LipContact.pushed_along``: each gives the nodes of every pair of lip primitives that a
+# move would bring too close the longest move among them.
+PUSH_ALONG_ROUNDS = 8
+
 # The landmarks that place the mouth.
 LIP_LANDMARKS = ("mouth_corner_left", "mouth_corner_right", "upper_lip_center", "lower_lip_center")
 
@@ -479,6 +483,53 @@ class LipContact:
                     fraction = 0.0
         return self.comm.allreduce(fraction, op=MPI.MIN)
 
+
+    def pushed_along(self, start: np.ndarray, end: np.ndarray) -> np.ndarray | None:
+        """``end``, a move of some lip nodes from the displacement ``start`` (dof arrays with their
+        ghosts) that would let the lips pass each other (``admissible_fraction`` below 1), with the
+        lips pushed along one another: round after round, the nodes of every pair of primitives
+        that the move brings closer than the bound allows (each pair found by the IPC Toolkit's
+        continuous collision detection) all take the longest move among them, until no pair is
+        left; None if PUSH_ALONG_ROUNDS rounds do not get there. A lower lip node that the teeth
+        closing overrun is pushed out of their way into the upper lip pressed on it: left there,
+        the solve had no finite residual; with the upper lip moved too, the pair keeps its gap
+        (collective; rank 0 decides, the same on every rank)."""
+        v0 = self.positions(start)
+        move = self.positions(end) - v0
+        pushed = end
+        for _ in range(PUSH_ALONG_ROUNDS):
+            if self.admissible_fraction(start, pushed) == 1.0:
+                return pushed
+            taken, move = self.comm.bcast(self._pushed_together(v0, move) if self.comm.rank == 0 else None, root=0)
+            if not taken.size:
+                return None
+            pushed = self.surface.placed(pushed, v0 + move, taken)
+        return pushed if self.admissible_fraction(start, pushed) == 1.0 else None
+
+    def _pushed_together(self, v0: np.ndarray, move: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The lip nodes whose ``move`` (nodes, 3) becomes the longest one among the nodes of a pair
+        of primitives that the moves from ``v0`` bring closer than ``admissible_fraction`` allows
+        (and whose move that changes), and the moves so changed."""
+        separation = (1.0 - CCD_KEEP) * self._min_distance_at(v0, self.dhat)
+        v0, v1 = np.asfortranarray(v0), np.asfortranarray(v0 + move)
+        candidates = ipctk.Candidates()
+        candidates.build(self.mesh, v0, v1, separation)
+        edges, faces = self.mesh.edges, self.mesh.faces
+        length = np.linalg.norm(move, axis=1)
+        longest, source = length.copy(), np.arange(len(move))
+        for kind in ("vv_candidates", "ev_candidates", "ee_candidates", "fv_candidates"):
+            for candidate in getattr(candidates, kind):
+                hit, toi = candidate.ccd(candidate.dof(v0, edges, faces), candidate.dof(v1, edges, faces),
+                                         separation, 1.0, NARROW_PHASE)
+                if not hit or toi >= 1.0:
+                    continue
+                nodes = np.asarray(candidate.vertex_ids(edges, faces))
+                nodes = nodes[nodes >= 0]
+                leader = nodes[np.argmax(length[nodes])]
+                follow = nodes[length[leader] > longest[nodes]]
+                longest[follow], source[follow] = length[leader], leader
+        taken = np.flatnonzero(source != np.arange(len(move)))
+        return taken, move[source]
 
 class LipIterates:
     """A SNES monitor (``solver.snes.setMonitor(LipIterates(lips, space))``) that records at every
