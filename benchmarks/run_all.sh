@@ -179,6 +179,10 @@ record $RESULTS/contact/crawl_relaxation_open_404k_np2.jsonl mpirun -n 2 $PYTHON
 record $RESULTS/contact/slow_fall_relaxation_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
   --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/slow_fall_relaxation_open_404k_np2.log
+# ... with a push of the lining through the other lip pushing that lip along (LipContact.pushed_along).
+record $RESULTS/contact/lips_pushed_along_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
+  --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/lips_pushed_along_open_404k_np2.log
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
