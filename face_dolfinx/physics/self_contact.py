@@ -483,7 +483,6 @@ class LipContact:
                     fraction = 0.0
         return self.comm.allreduce(fraction, op=MPI.MIN)
 
-
     def pushed_along(self, start: np.ndarray, end: np.ndarray) -> np.ndarray | None:
         """``end``, a move of some lip nodes from the displacement ``start`` (dof arrays with their
         ghosts) that would let the lips pass each other (``admissible_fraction`` below 1), with the
@@ -530,6 +529,7 @@ class LipContact:
                 longest[follow], source[follow] = length[leader], leader
         taken = np.flatnonzero(source != np.arange(len(move)))
         return taken, move[source]
+
 
 class LipIterates:
     """A SNES monitor (``solver.snes.setMonitor(LipIterates(lips, space))``) that records at every
