@@ -183,6 +183,9 @@ record $RESULTS/contact/slow_fall_relaxation_open_404k_np2.jsonl mpirun -n 2 $PY
 record $RESULTS/contact/lips_pushed_along_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
   --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/lips_pushed_along_open_404k_np2.log
+record $RESULTS/contact/lips_pushed_along_open_404k_np2_rerun.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
+  --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/lips_pushed_along_open_404k_np2_rerun.log
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
