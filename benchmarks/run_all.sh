@@ -170,22 +170,20 @@ done
 record $RESULTS/contact/opening_trace_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
   --tets 400000 --truth-tets 20000 --head-motion --start 5 --frames 10 --variants contact \
   --max-seconds 1500 --abort-seconds 3000 -v --trace-newton 2> $RESULTS/contact/opening_trace_404k_np2.log
-record $RESULTS/contact/crawl_relaxation_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
-  --tets 400000 --truth-tets 20000 --head-motion --start 5 --frames 10 --variants no-contact contact \
-  --interleave --max-seconds 1500 --abort-seconds 3000 -v --trace-newton 2> $RESULTS/contact/crawl_relaxation_404k_np2.log
-record $RESULTS/contact/crawl_relaxation_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
-  --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
-  --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/crawl_relaxation_open_404k_np2.log
-record $RESULTS/contact/slow_fall_relaxation_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
-  --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
-  --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/slow_fall_relaxation_open_404k_np2.log
-# ... with a push of the lining through the other lip pushing that lip along (LipContact.pushed_along).
-record $RESULTS/contact/lips_pushed_along_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
-  --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
-  --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/lips_pushed_along_open_404k_np2.log
-record $RESULTS/contact/lips_pushed_along_open_404k_np2_rerun.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
-  --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
-  --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/lips_pushed_along_open_404k_np2_rerun.log
+# The same commands at the commits of their manifest entries: the crawl's relaxation, then also the slow
+# fall's (relax_on_slow_fall), then a push of the lining through the other lip pushing that lip along
+# (LipContact.pushed_along) and its rerun.
+for name in crawl_relaxation_404k_np2 slow_fall_relaxation_404k_np2; do
+  record $RESULTS/contact/$name.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+    --tets 400000 --truth-tets 20000 --head-motion --start 5 --frames 10 --variants no-contact contact \
+    --interleave --max-seconds 1500 --abort-seconds 3000 -v --trace-newton 2> $RESULTS/contact/$name.log
+done
+for name in crawl_relaxation_open_404k_np2 slow_fall_relaxation_open_404k_np2 lips_pushed_along_open_404k_np2 \
+    lips_pushed_along_open_404k_np2_rerun; do
+  record $RESULTS/contact/$name.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+    --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
+    --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/$name.log
+done
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

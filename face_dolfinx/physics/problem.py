@@ -695,10 +695,10 @@ class FaceProblem:
         the closing teeth: the lower lip's nodes pushed out of the teeth's way went into the upper
         lip, and each such start failed (the lips' second closure, docs/performance.md)."""
         origin = start if origin is None else origin
-        if self._admissible_move(origin, end):
-            return end
-        if self.lips is None or self.solver.inversion_guard.step_fraction(origin, origin - end) < 1.0:
+        if self.solver.inversion_guard.step_fraction(origin, origin - end) < 1.0:
             return None
+        if self.lips is None or self.lips.admissible_fraction(origin, end) == 1.0:
+            return end
         pushed = self.lips.pushed_along(start, end)
         if pushed is None or not self._admissible_move(origin, pushed):
             log.debug("lining not pushed out: the other lip would pass it, pushed along or not")
