@@ -159,6 +159,38 @@ def test_no_node_enters_the_sphere_at_any_newton_iterate():
     assert problem.residual_norm() < 1e-6
 
 
+def test_a_push_out_that_would_flatten_cells_is_lifted_into_the_flesh():
+    """The sphere moved 2.4 mm into the slab's 2.5 mm layer of cells in one solve: put where it
+    pushes them (``ContactPotential.move_to``), the surface nodes would flatten that layer's cells;
+    they are lifted there from where they were, as a bone motion is, and the solve takes one load
+    step, no cell below the inversion guard's bound and no node inside the sphere at any Newton
+    iterate, to the equilibrium the press reaches in two solves."""
+    problem = pressed_slab(depth=0.0)
+    contact, guard = problem.contact, problem.solver.inversion_guard
+    u = problem.u.x.array
+    pushed = contact.push_out(u, (sphere_at(2.4),))[0]
+    assert guard.step_fraction(u, u - pushed) < 1.0  # the push-out put as it is flattens cells
+    ratios, gaps = [], []
+
+    def monitor(snes, iteration, norm):
+        x = snes.getSolution()
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        with x.localForm() as local:
+            ratios.append(guard.min_ratio(local.array_r))
+        gaps.append(contact.min_gap(x.array_r))
+
+    problem.solver.snes.setMonitor(monitor)
+    report = problem.solve(objects=(sphere_at(2.4),))
+    problem.solver.snes.cancelMonitor()
+    assert report.converged and report.load_steps == 1
+    assert min(ratios) >= guard.min_volume_ratio and min(gaps) > 0.0
+    stepwise = pressed_slab(depth=0.0)
+    for depth in (1.2, 2.4):
+        assert stepwise.solve(objects=(sphere_at(depth),)).converged
+    difference = problem.comm.allreduce(float(np.abs(problem.u.x.array - stepwise.u.x.array).max()), op=MPI.MAX)
+    assert difference < 1e-3  # mm, of a 2.4 mm press
+
+
 def test_newton_energy_tolerance_stops_within_that_energy_of_the_equilibrium():
     """With contact, ``newton_energy_tolerance`` stops Newton once a correction would release less
     energy than it (mN mm): the sphere pressed 1.5 mm in ends within that energy of the equilibrium

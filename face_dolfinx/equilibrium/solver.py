@@ -262,6 +262,11 @@ class InversionGuard:
             fraction *= 0.5
         return fraction
 
+    def flattens(self, start: np.ndarray, end: np.ndarray) -> bool:
+        """Whether the straight move from the displacement ``start`` to ``end`` takes a cell below
+        the bound of ``step_fraction`` (collective)."""
+        return self.step_fraction(start, start - end) < 1.0
+
     def flattened_blocks(self, displacement: np.ndarray, step: np.ndarray) -> np.ndarray:
         """Local blocks (ghosts included) of the vertices of the guarded cells that displacement +
         step takes below the bound of ``step_fraction`` (on this rank's cells)."""

@@ -109,6 +109,12 @@ def closing_in(now: np.ndarray, moved: np.ndarray, dhat: float) -> bool:
     return bool(((moved < (1.0 - CCD_KEEP) * now) & (moved < PUSH_GAP * dhat)).any())
 
 
+def _flattens(solver, start: np.ndarray, end: np.ndarray) -> bool:
+    """Whether the straight move from the displacement ``start`` to ``end`` (dof arrays with their
+    ghosts) flattens a cell of ``solver``'s inversion guard (False without one; collective)."""
+    return solver.inversion_guard is not None and solver.inversion_guard.flattens(start, end)
+
+
 def surfaces_cross(points_a: np.ndarray, triangles_a: np.ndarray, points_b: np.ndarray,
                    triangles_b: np.ndarray) -> bool:
     """Whether an edge of one triangle surface passes through a triangle of the other (the IPC
@@ -772,8 +778,9 @@ class ContactPotential:
         upper lip). Those of them that an object's new pose would leave closer than the gap they
         have now (or PUSH_GAP * dhat) start the solve moved out along its normal to that gap, as
         ``mend(start, end)`` (dof arrays) makes that move admissible (the end it returns, e.g. with
-        the other lip pushed along; None: not moved): left where they were, lip nodes inside the
-        teeth gave the solve no finite residual (the lips' second closure, docs/performance.md).
+        the other lip pushed along; None: not moved) and it flattens no cell: left where they were,
+        lip nodes inside the teeth gave the solve no finite residual (the lips' second closure,
+        docs/performance.md).
         Returns the Newton iterations it took."""
         u = solver.unknown
         gaps = self.gaps(u.x.array, within=reach)
@@ -786,6 +793,8 @@ class ContactPotential:
             overrun_free = overrun & free
             if mend is not None and overrun_free.any():
                 moved = self._mended(mend, u.x.array, self._kept_clear(u.x.array, overrun_free, gaps, poses), poses)
+                if moved is not None and _flattens(solver, u.x.array, moved):
+                    moved = None
                 if moved is not None:
                     u.x.array[:] = moved
                 else:
@@ -845,11 +854,16 @@ class ContactPotential:
         collision-limited steps while the flesh pulls the dent back node by node. The state it
         leaves overlaps no object; the solve that follows releases the nodes. ``mend(start, end)``
         (dof arrays), if given, takes the push-out's move and returns it admissible (e.g. with the
-        other lip pushed along out of the pushed lip's way; None: the push-out as it is). Returns
-        the Newton iterations it took."""
+        other lip pushed along out of the pushed lip's way; None: the push-out as it is). A
+        push-out that would flatten a cell of ``solver``'s inversion guard is not put there: the
+        solve starts where the surface was, the held nodes out of the barrier, and lifts them to
+        their pushed places as it lifts a bone motion (the guard cuts its steps). Put there, the
+        teeth's push-out of the lips' lining as the jaw closed on them left no finite residual,
+        and the frame went on by continuation (the lips' second closure, docs/performance.md).
+        Returns the Newton iterations it took."""
         u = solver.unknown
         before = u.x.array.copy()
-        u.x.array[:], nodes = self.push_out(u.x.array, poses)
+        u.x.array[:], nodes = self.push_out(before, poses)
         u.x.scatter_forward()
         mended = self._mended(mend, before, u.x.array, poses) if mend is not None else None
         if mended is not None:
@@ -862,11 +876,17 @@ class ContactPotential:
         values.x.array[:] = u.x.array
         chosen = np.zeros(self.surface.num_nodes, dtype=bool)
         chosen[nodes] = True
+        ignored = self.ignored
+        if _flattens(solver, before, values.x.array):
+            log.debug("push-out of %d nodes lifted into the flesh: put there, it flattens cells", len(nodes))
+            u.x.array[:] = before
+            self.ignored = ignored | chosen
         held = fem.dirichletbc(values, self.surface.local_blocks_of(chosen)[0])
         solver.bcs.append(held)
         try:
             return solver.newton()[1]
         finally:
+            self.ignored = ignored
             solver.bcs.remove(held)
             solver.controls_changed()
 

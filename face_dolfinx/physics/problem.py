@@ -643,7 +643,7 @@ class FaceProblem:
             scales = whole + (1.0 - whole) * ramp * ramp * (3.0 - 2.0 * ramp)
             scales[self.bone_blocks] = 1.0
             bounded = carried + (scales[:, None] * step.reshape(-1, 3)).reshape(-1)
-            if guard.step_fraction(carried, carried - bounded) == 1.0:
+            if not guard.flattens(carried, bounded):
                 log.debug("prediction cut short around %d nodes over %g mm to %.3g of the way", len(flattened),
                           width, whole)
                 return bounded, 1.0
@@ -669,7 +669,7 @@ class FaceProblem:
         if projected is None:
             return None
         projected = self._mended_move(end, projected, origin=equilibrium)
-        if projected is None:
+        if projected is None or self.solver.inversion_guard.flattens(equilibrium, projected):
             log.debug("prediction's lining not moved out of the teeth: the move flattens a cell or lets the lips "
                       "pass each other")
             return None
@@ -680,27 +680,19 @@ class FaceProblem:
                   self.comm.allreduce(float(moves.max(initial=0.0)), op=MPI.MAX))
         return projected
 
-    def _admissible_move(self, start: np.ndarray, end: np.ndarray) -> bool:
-        """Whether the straight move from the displacement ``start`` to ``end`` flattens no cell
-        and lets the lips pass each other nowhere (collective; the same on every rank)."""
-        if self.solver.inversion_guard.step_fraction(start, start - end) < 1.0:
-            return False
-        return self.lips is None or self.lips.admissible_fraction(start, end) == 1.0
-
     def _mended_move(self, start: np.ndarray, end: np.ndarray, origin: np.ndarray | None = None) -> np.ndarray | None:
         """``end``, a push of lining nodes from the displacement ``start`` out of the teeth's or an
-        object's way, if the move to it from ``origin`` (default ``start``) is admissible
-        (``_admissible_move``), else with the other lip pushed along (``LipContact.pushed_along``)
-        if that makes it so, else None (collective). The lips pressed on each other in front of
-        the closing teeth: the lower lip's nodes pushed out of the teeth's way went into the upper
-        lip, and each such start failed (the lips' second closure, docs/performance.md)."""
+        object's way, if the straight move to it from ``origin`` (default ``start``) lets the lips
+        pass each other nowhere, else with the other lip pushed along (``LipContact.pushed_along``)
+        if that makes it so, else None (collective; whether the move flattens cells is the caller's
+        to judge). The lips pressed on each other in front of the closing teeth: the lower lip's
+        nodes pushed out of the teeth's way went into the upper lip, and each such start failed
+        (the lips' second closure, docs/performance.md)."""
         origin = start if origin is None else origin
-        if self.solver.inversion_guard.step_fraction(origin, origin - end) < 1.0:
-            return None
         if self.lips is None or self.lips.admissible_fraction(origin, end) == 1.0:
             return end
         pushed = self.lips.pushed_along(start, end)
-        if pushed is None or not self._admissible_move(origin, pushed):
+        if pushed is None or self.lips.admissible_fraction(origin, pushed) < 1.0:
             log.debug("lining not pushed out: the other lip would pass it, pushed along or not")
             return None
         along = np.linalg.norm(self.lips.positions(pushed) - self.lips.positions(end), axis=1) > UNMOVED
