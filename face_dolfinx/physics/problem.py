@@ -664,12 +664,15 @@ class FaceProblem:
         the lips pass each other. The linear prediction does not see the teeth beyond the
         barrier's reach and takes lining nodes that arrive at them inside; the teeth's bound cut
         the whole face's prediction short for those few nodes, and Newton took the cut prediction
-        after solves that push the lining out of the teeth moved to their poses."""
+        after solves that push the lining out of the teeth moved to their poses. The move is
+        judged from ``end``, which the bounds before the teeth's admit from the equilibrium: judged
+        from the equilibrium, the lips' bound of a prediction cut exactly at it decided by
+        round-off (the lips' second closure, docs/performance.md)."""
         projected = self.teeth_contact.projected_end(equilibrium, end, poses, PROJECTION_LIMIT)
         if projected is None:
             return None
-        projected = self._mended_move(end, projected, origin=equilibrium)
-        if projected is None or self.solver.inversion_guard.flattens(equilibrium, projected):
+        projected = self._mended_move(end, projected)
+        if projected is None or self.solver.inversion_guard.flattens(end, projected):
             log.debug("prediction's lining not moved out of the teeth: the move flattens a cell or lets the lips "
                       "pass each other")
             return None
@@ -680,19 +683,18 @@ class FaceProblem:
                   self.comm.allreduce(float(moves.max(initial=0.0)), op=MPI.MAX))
         return projected
 
-    def _mended_move(self, start: np.ndarray, end: np.ndarray, origin: np.ndarray | None = None) -> np.ndarray | None:
+    def _mended_move(self, start: np.ndarray, end: np.ndarray) -> np.ndarray | None:
         """``end``, a push of lining nodes from the displacement ``start`` out of the teeth's or an
-        object's way, if the straight move to it from ``origin`` (default ``start``) lets the lips
-        pass each other nowhere, else with the other lip pushed along (``LipContact.pushed_along``)
-        if that makes it so, else None (collective; whether the move flattens cells is the caller's
-        to judge). The lips pressed on each other in front of the closing teeth: the lower lip's
-        nodes pushed out of the teeth's way went into the upper lip, and each such start failed
-        (the lips' second closure, docs/performance.md)."""
-        origin = start if origin is None else origin
-        if self.lips is None or self.lips.admissible_fraction(origin, end) == 1.0:
+        object's way, if the straight move to it lets the lips pass each other nowhere, else with
+        the other lip pushed along (``LipContact.pushed_along``) if that makes it so, else None
+        (collective; whether the move flattens cells is the caller's to judge). The lips pressed on
+        each other in front of the closing teeth: the lower lip's nodes pushed out of the teeth's
+        way went into the upper lip, and each such start failed (the lips' second closure,
+        docs/performance.md)."""
+        if self.lips is None or self.lips.admissible_fraction(start, end) == 1.0:
             return end
         pushed = self.lips.pushed_along(start, end)
-        if pushed is None or self.lips.admissible_fraction(origin, pushed) < 1.0:
+        if pushed is None:
             log.debug("lining not pushed out: the other lip would pass it, pushed along or not")
             return None
         along = np.linalg.norm(self.lips.positions(pushed) - self.lips.positions(end), axis=1) > UNMOVED
