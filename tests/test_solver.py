@@ -100,6 +100,18 @@ def test_reuse_across_solves_keeps_a_fresh_factor_for_one_more_iteration():
     assert newton(policy, steps) == [False, True, False, True, False, False]
 
 
+def test_a_lifting_solve_keeps_a_fresh_factor_whose_correction_the_guard_cut_for_one_more_iteration():
+    """In a solve that lifts held nodes far to their Dirichlet values (``QuasistaticSolver.newton(lifting=True)``:
+    a contact object's push-out or carry) a fresh factor whose correction the inversion guard cut is
+    kept for the next iteration, and a cut correction from the kept factor refreshes it; elsewhere
+    every cut correction refreshes the factor."""
+    steps = [(1e4, 1.0, True), (8e3, 1.0, True), (7e3, 1.0, True), (6e3, 1.0, True)]
+    lifting = FactorReusePolicy(across_solves=True, refresh_contraction=0.25)
+    lifting.keeps_cut_fresh_factor = True
+    assert newton(lifting, steps) == [False, True, False, True]
+    assert newton(FactorReusePolicy(across_solves=True, refresh_contraction=0.25), steps) == [False] * 4
+
+
 def test_with_energy_terms_a_slow_residual_cut_keeps_a_factor_whose_energy_norm_contracts():
     """Pressed lips hold most of the residual's norm and little of its energy: where the residual
     norm fell too slowly after a correction from the old factor, that factor is kept if the energy

@@ -301,9 +301,9 @@ def test_a_prediction_that_moves_the_jaw_moves_the_teeth_with_the_bones(model):
     starts, gaps = [], []
     newton = problem.solver.newton
 
-    def recorded_newton():
+    def recorded_newton(**options):
         starts.append(problem.solver.bc_error())
-        return newton()
+        return newton(**options)
 
     problem.solver.newton = recorded_newton
     problem.solver.snes.setMonitor(lambda snes, it, norm: gaps.append(teeth.min_gap(snes.getSolution().array_r)))
@@ -457,9 +457,9 @@ def test_a_cut_prediction_keeps_the_heads_whole_motion(model, pressed):
         cranium = turn.compose(problem.controls.cranium)
         newton, errors = problem.solver.newton, []
 
-        def recorded_newton():
+        def recorded_newton(**options):
             errors.append(problem.solver.bc_error())
-            return newton()
+            return newton(**options)
 
         problem.solver.newton = recorded_newton
         gaps = []

@@ -818,7 +818,7 @@ class ContactPotential:
         ignored = self.ignored
         self.ignored = ignored | held
         try:
-            return solver.newton()[1]
+            return solver.newton(lifting=True)[1]
         finally:
             self.ignored = ignored
             solver.bcs.remove(condition)
@@ -877,14 +877,15 @@ class ContactPotential:
         chosen = np.zeros(self.surface.num_nodes, dtype=bool)
         chosen[nodes] = True
         ignored = self.ignored
-        if _flattens(solver, before, values.x.array):
+        lifted = _flattens(solver, before, values.x.array)
+        if lifted:
             log.debug("push-out of %d nodes lifted into the flesh: put there, it flattens cells", len(nodes))
             u.x.array[:] = before
             self.ignored = ignored | chosen
         held = fem.dirichletbc(values, self.surface.local_blocks_of(chosen)[0])
         solver.bcs.append(held)
         try:
-            return solver.newton()[1]
+            return solver.newton(lifting=lifted)[1]
         finally:
             self.ignored = ignored
             solver.bcs.remove(held)
