@@ -126,10 +126,10 @@ class NewtonCount:
         self.iterations = self.nonfinite_starts = 0
         newton = solver.newton
 
-        def counted():
+        def counted(**options):
             if check_starts and not np.isfinite(solver.residual_norm()):
                 self.nonfinite_starts += 1
-            result = newton()
+            result = newton(**options)
             self.iterations += result[1]
             return result
         solver.newton = counted
