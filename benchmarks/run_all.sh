@@ -172,14 +172,17 @@ record $RESULTS/contact/opening_trace_404k_np2.jsonl mpirun -n 2 $PYTHON benchma
   --max-seconds 1500 --abort-seconds 3000 -v --trace-newton 2> $RESULTS/contact/opening_trace_404k_np2.log
 # The same commands at the commits of their manifest entries: the crawl's relaxation, then also the slow
 # fall's (relax_on_slow_fall), then a push of the lining through the other lip pushing that lip along
-# (LipContact.pushed_along) and its rerun.
+# (LipContact.pushed_along) and its rerun, then a push-out that would flatten cells lifted into the
+# flesh (ContactPotential.move_to), the prediction's lining projection judged from the cut prediction,
+# and a guard-cut fresh factor kept once in lifting solves.
 for name in crawl_relaxation_404k_np2 slow_fall_relaxation_404k_np2; do
   record $RESULTS/contact/$name.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
     --tets 400000 --truth-tets 20000 --head-motion --start 5 --frames 10 --variants no-contact contact \
     --interleave --max-seconds 1500 --abort-seconds 3000 -v --trace-newton 2> $RESULTS/contact/$name.log
 done
 for name in crawl_relaxation_open_404k_np2 slow_fall_relaxation_open_404k_np2 lips_pushed_along_open_404k_np2 \
-    lips_pushed_along_open_404k_np2_rerun; do
+    lips_pushed_along_open_404k_np2_rerun lifted_push_out_open_404k_np2 projection_from_cut_open_404k_np2 \
+    lifting_factor_kept_open_404k_np2; do
   record $RESULTS/contact/$name.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
     --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
     --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/$name.log
