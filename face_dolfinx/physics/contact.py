@@ -793,9 +793,7 @@ class ContactPotential:
             overrun_free = overrun & free
             if mend is not None and overrun_free.any():
                 moved = self._mended(mend, u.x.array, self._kept_clear(u.x.array, overrun_free, gaps, poses), poses)
-                if moved is not None and _flattens(solver, u.x.array, moved):
-                    moved = None
-                if moved is not None:
+                if moved is not None and not _flattens(solver, u.x.array, moved):
                     u.x.array[:] = moved
                 else:
                     log.debug("carry: %d free nodes that the new poses overrun not moved out (not admissible)",

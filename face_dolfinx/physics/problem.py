@@ -691,14 +691,14 @@ class FaceProblem:
         each other in front of the closing teeth: the lower lip's nodes pushed out of the teeth's
         way went into the upper lip, and each such start failed (the lips' second closure,
         docs/performance.md)."""
-        if self.lips is None or self.lips.admissible_fraction(start, end) == 1.0:
+        if self.lips is None:
             return end
-        pushed = self.lips.pushed_along(start, end)
+        pushed = self.lips.pushed_along(start, end)  # ``end`` itself where the lips let it be
         if pushed is None:
             log.debug("lining not pushed out: the other lip would pass it, pushed along or not")
-            return None
-        along = np.linalg.norm(self.lips.positions(pushed) - self.lips.positions(end), axis=1) > UNMOVED
-        log.debug("lining pushed out with %d nodes of the other lip pushed along", np.count_nonzero(along))
+        elif pushed is not end:
+            along = np.linalg.norm(self.lips.positions(pushed) - self.lips.positions(end), axis=1) > UNMOVED
+            log.debug("lining pushed out with %d nodes of the other lip pushed along", np.count_nonzero(along))
         return pushed
 
     def _carried_with_head(self, start: Controls, target: Controls) -> Controls:
