@@ -85,7 +85,7 @@ VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "co
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
             "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
             "contact+narrow-newton-lips", "contact+cut-whole", "contact+judged-cuts", "contact+exact-fresh-jacobians", "contact+exact-flesh",
-            "contact+no-crawl-relaxation")
+            "contact+no-crawl-relaxation", "contact+lips-cut-whole")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 # QuasistaticSolver's counters, per frame
