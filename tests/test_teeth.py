@@ -13,7 +13,6 @@ from dataclasses import replace
 from mpi4py import MPI
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from conftest import on_rank_0
 from face_dolfinx.model.bones import AffineMap, rotation
@@ -21,7 +20,7 @@ from face_dolfinx.model.folder import ModelError, load_model
 from face_dolfinx.model.surface_file import write_triangle_surface
 from face_dolfinx.model.bones import jaw_pose
 from face_dolfinx.physics.contact import CCD_KEEP, TEETH_DHAT, TEETH_STIFFNESS, ContactSettings
-from face_dolfinx.physics.problem import BLEND_WIDTHS, PROJECTION_LIMIT, SPREAD_PROJECTION_LIMIT, FaceProblem
+from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.physics.rigid_mesh import TriangleMesh
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity
 
@@ -402,52 +401,6 @@ def test_a_prediction_that_takes_the_lining_into_the_teeth_moves_it_out(model, p
     assert "lining moved out of the teeth instead" in caplog.text and "prediction pulled back" not in caplog.text
     assert report.converged and report.load_steps == 1 and min(iterate_gaps) > 0.0
     assert problem.comm.allreduce(np.abs(problem.u.x.array - start).max(initial=0.0), op=MPI.MAX) < 1e-3
-
-
-def test_a_prediction_deeper_into_the_teeth_moves_the_flesh_around_the_lining_out_too(model, pressed, caplog):
-    """The same prediction translated 0.9 mm against the teeth: its lining nodes would move out
-    of them by more than PROJECTION_LIMIT (alone, they sheared the cells between them and the
-    lining that stays), so the flesh within a blend width of them moves along, the bones not at
-    all; Newton starts from the prediction so mended, the face beyond the widest blend where the
-    prediction put it, and reaches the pressed equilibrium, no node inside at any iterate."""
-    problem = FaceProblem(model, contact=ContactSettings(teeth=True, stiffness=TEETH_STIFFNESS))
-    problem.u.x.array[:] = pressed[0].u.x.array
-    problem.set_controls(pressed[0].controls)
-    teeth, comm = problem.teeth_contact, problem.comm
-    start = problem.u.x.array.copy()
-    gaps = teeth.gaps(start)
-    obj, node = np.unravel_index(np.argmin(gaps), gaps.shape)
-    normal = teeth.objects[obj].gaps(teeth.positions(start)[[node]], teeth.poses[obj])[1][0]
-    guess = (start.reshape(-1, 3) - 0.9 * normal).reshape(-1)
-    assert teeth.projected_end(start, guess, teeth.poses, PROJECTION_LIMIT) is None
-    assert teeth.projected_end(start, guess, teeth.poses, SPREAD_PROJECTION_LIMIT) is not None
-    newton, starts = problem.solver.newton, []
-
-    def recorded(**options):
-        starts.append(problem.u.x.array.copy())
-        return newton(**options)
-
-    problem.solver.newton = recorded
-    iterate_gaps = []
-    problem.solver.snes.setMonitor(lambda snes, it, norm: iterate_gaps.append(teeth.min_gap(snes.getSolution().array_r)))
-    with caplog.at_level("DEBUG", logger="face_dolfinx.physics.problem"):
-        report = problem.solve(guess=guess)
-    problem.solver.snes.cancelMonitor()
-    assert "moving along" in caplog.text and "prediction pulled back" not in caplog.text
-    assert report.converged and report.load_steps == 1 and min(iterate_gaps) > 0.0
-    assert comm.allreduce(np.abs(problem.u.x.array - start).max(initial=0.0), op=MPI.MAX) < 1e-3
-    moves = np.linalg.norm((starts[-1] - guess).reshape(-1, 3), axis=1)
-    off_lining = np.ones(len(moves), dtype=bool)
-    off_lining[teeth.surface.local_blocks] = False
-    assert comm.allreduce(int(np.count_nonzero(moves[off_lining] > 0.0)))  # the flesh moved along
-    bones = problem.bone_blocks  # at their frames, where they were
-    assert comm.allreduce(float(np.abs(starts[-1] - start).reshape(-1, 3)[bones].max(initial=0.0)), op=MPI.MAX) == 0.0
-    moves[bones] = 0.0
-    lining = teeth.surface.local_blocks_of(np.ones(teeth.surface.num_nodes, dtype=bool))[0]
-    moved = problem.dof_coordinates[lining[moves[lining] > 0.0]]
-    moved = np.concatenate(comm.allgather(moved))
-    far = cKDTree(moved).query(problem.dof_coordinates)[0] > max(BLEND_WIDTHS)
-    assert comm.allreduce(float(moves[far].max(initial=0.0)), op=MPI.MAX) == 0.0
 
 
 def test_a_lining_node_from_afar_is_projected_out_of_the_teeth(model, pressed):

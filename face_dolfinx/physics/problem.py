@@ -60,10 +60,6 @@ log = logging.getLogger(__name__)
 # mm: the farthest a Gauss-Newton prediction's lining node is moved out of the teeth
 # (``FaceProblem._lining_projected``) rather than the prediction cut short.
 PROJECTION_LIMIT = 0.5
-# mm: the farthest a prediction's lining node is moved out of the teeth with the flesh around it
-# moving along (``FaceProblem._projection_spread``), where a move beyond PROJECTION_LIMIT is asked for.
-SPREAD_PROJECTION_LIMIT = 2.0
-SPREAD_NEIGHBOURS = 8  # moved lining nodes whose moves a node of the flesh around them averages
 # mm: the widths, smallest first, over which a prediction cut short around a few nodes returns to
 # its whole way (``FaceProblem._bounded_locally``); the first that flattens no cell is taken.
 BLEND_WIDTHS = (2.0, 4.0, 8.0, 16.0)
@@ -710,67 +706,29 @@ class FaceProblem:
 
     def _lining_projected(self, equilibrium: np.ndarray, end: np.ndarray, poses) -> np.ndarray | None:
         """The prediction ``end`` with the lining nodes that it takes too close to the teeth (at
-        ``poses``) moved out along the teeth's normals (``ContactPotential.projected_end``); a move
-        beyond PROJECTION_LIMIT, up to SPREAD_PROJECTION_LIMIT, with the flesh around those nodes
-        moving along (``_projection_spread``, over the narrowest of BLEND_WIDTHS that passes); None
-        where the move would invert a cell, let the lips pass each other (pushed along or not) or
-        take a node into the teeth. The linear prediction does not see the teeth beyond the
+        ``poses``) moved out along the teeth's normals (``ContactPotential.projected_end``), or
+        None where that would move a node farther than PROJECTION_LIMIT, invert a cell, or let
+        the lips pass each other. The linear prediction does not see the teeth beyond the
         barrier's reach and takes lining nodes that arrive at them inside; the teeth's bound cut
         the whole face's prediction short for those few nodes, and Newton took the cut prediction
         after solves that push the lining out of the teeth moved to their poses. The move is
         judged from ``end``, which the bounds before the teeth's admit from the equilibrium: judged
         from the equilibrium, the lips' bound of a prediction cut exactly at it decided by
         round-off (the lips' second closure, docs/performance.md)."""
-        teeth = self.teeth_contact
-        projected = teeth.projected_end(equilibrium, end, poses, PROJECTION_LIMIT)
-        if projected is not None:
-            candidates, widths = [projected], [0.0]
-        else:
-            # Moved farther, the lining nodes alone sheared the cells between them and the lining
-            # that stays: the flesh around them moves along.
-            farther = teeth.projected_end(equilibrium, end, poses, SPREAD_PROJECTION_LIMIT)
-            widths = list(BLEND_WIDTHS) if farther is not None else []
-            candidates = (self._projection_spread(end, farther, width) for width in widths)
-        for candidate, width in zip(candidates, widths):
-            if width and (teeth.gaps(candidate, poses) <= 0.0).any():
-                continue
-            mended = self._mended_move(end, candidate)
-            if mended is None or self.solver.inversion_guard.flattens(end, mended):
-                continue
-            # (Collective on every rank: the ranks may log at different levels.)
-            moves = np.linalg.norm((mended - end).reshape(-1, 3), axis=1)
-            moved = self.comm.allreduce(int(np.count_nonzero(moves[:self.V.dofmap.index_map.size_local] > 0.0)))
-            log.debug("prediction's lining moved out of the teeth instead: %d nodes, up to %.3g mm%s", moved,
-                      self.comm.allreduce(float(moves.max(initial=0.0)), op=MPI.MAX),
-                      f", the flesh within {width:g} mm moving along" if width else "")
-            return mended
-        if widths:
-            log.debug("prediction's lining not moved out of the teeth: the move flattens a cell, lets the lips "
-                      "pass each other or takes a node into the teeth")
-        return None
-
-    def _projection_spread(self, end: np.ndarray, projected: np.ndarray, width: float) -> np.ndarray:
-        """``projected``, ``end`` with some lining nodes moved out of the teeth, with the flesh
-        within ``width`` (rest distance) of those nodes moving along: each node by the mean of the
-        moves of its SPREAD_NEIGHBOURS nearest moved nodes (weighted by the inverse square of
-        their distance; a moved node keeps its own move) scaled by a smoothstep from 1 at the
-        nearest to 0 at ``width``, the bones' nodes not at all (collective)."""
-        moves = (projected - end).reshape(-1, 3)
-        owned = self.V.dofmap.index_map.size_local
-        mine = np.flatnonzero(np.linalg.norm(moves[:owned], axis=1) > 0.0)
-        points = np.concatenate(self.comm.allgather(self.dof_coordinates[mine]))
-        vectors = np.concatenate(self.comm.allgather(moves[mine]))
-        count = min(SPREAD_NEIGHBOURS, len(points))
-        distance, index = cKDTree(points).query(self.dof_coordinates, k=count)
-        distance, index = distance.reshape(len(distance), count), index.reshape(len(index), count)
-        at_node = distance[:, :1] == 0.0
-        weights = np.where(at_node, (distance == 0.0).astype(float),
-                           1.0 / np.maximum(distance, 1e-300) ** 2)
-        mean = np.einsum("nk,nkj->nj", weights, vectors[index]) / weights.sum(axis=1)[:, None]
-        ramp = np.clip(1.0 - distance[:, 0] / width, 0.0, 1.0)
-        spread = (ramp * ramp * (3.0 - 2.0 * ramp))[:, None] * mean
-        spread[self.bone_blocks] = 0.0
-        return end + spread.reshape(-1)
+        projected = self.teeth_contact.projected_end(equilibrium, end, poses, PROJECTION_LIMIT)
+        if projected is None:
+            return None
+        projected = self._mended_move(end, projected)
+        if projected is None or self.solver.inversion_guard.flattens(end, projected):
+            log.debug("prediction's lining not moved out of the teeth: the move flattens a cell or lets the lips "
+                      "pass each other")
+            return None
+        # (Collective on every rank: the ranks may log at different levels.)
+        moves = np.linalg.norm((projected - end).reshape(-1, 3), axis=1)
+        moved = self.comm.allreduce(int(np.count_nonzero(moves[:self.V.dofmap.index_map.size_local] > 0.0)))
+        log.debug("prediction's lining moved out of the teeth instead: %d nodes, up to %.3g mm", moved,
+                  self.comm.allreduce(float(moves.max(initial=0.0)), op=MPI.MAX))
+        return projected
 
     def _mended_move(self, start: np.ndarray, end: np.ndarray) -> np.ndarray | None:
         """``end``, a push of lining nodes from the displacement ``start`` out of the teeth's or an
