@@ -71,21 +71,19 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # ``LipContact.coupled_blocks``'s, and Newton's tangent without the lips' barrier of wider reach
 # (``LipContactSettings.newton_reach`` 0), and a Gauss-Newton prediction cut short as a whole
 # where it flattens a few cells, not around them only (``FaceProblem.bound_prediction_locally``), and
-# a Gauss-Newton prediction cut short as a whole where it lets the lips pass each other, not the lips
-# held back only (``FaceProblem.hold_lips_locally``), and
 # the factor kept by the residual's energy norm after a correction the collision-free bound cut
 # however short (``FactorReusePolicy.judged_step_bound`` 0), and a Gauss-Newton step's fresh Jacobian
 # from a factor of the exact tangent instead of Newton's (``FitSettings.fresh_jacobian_from_newton_tangent``), and
 # Newton's tangent with the flesh's exact stiffness in every cell (``FaceProblem(definite_tangent=False)``).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
              "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
-             "narrow-newton-lips", "cut-whole", "lips-cut-whole", "judged-cuts", "exact-fresh-jacobians", "exact-flesh")
+             "narrow-newton-lips", "cut-whole", "judged-cuts", "exact-fresh-jacobians", "exact-flesh")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
             "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
             "contact+narrow-newton-lips", "contact+cut-whole", "contact+judged-cuts", "contact+exact-fresh-jacobians", "contact+exact-flesh",
-            "contact+no-crawl-relaxation", "contact+lips-cut-whole")
+            "contact+no-crawl-relaxation")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 # QuasistaticSolver's counters, per frame
@@ -245,8 +243,6 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.carry_head = False
     if "cut-whole" in ablations:
         problem.bound_prediction_locally = False
-    if "lips-cut-whole" in ablations:
-        problem.hold_lips_locally = False
     if "cut-lining" in ablations:
         problem.teeth_contact.projected_end = lambda start, end, end_poses, limit: None
     if "residual-refresh" in ablations:

@@ -187,6 +187,15 @@ for name in crawl_relaxation_open_404k_np2 slow_fall_relaxation_open_404k_np2 li
     --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
     --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/$name.log
 done
+# The lips of a prediction held back alone against the prediction cut as a whole at the lips' bound, on
+# both stretches; and (at the commit of its manifest entry, whose lining projection also moved the flesh
+# around the lining along) lining_spread_open_404k_np2.
+for name in lips_held_404k_np2:5 lips_held_open_404k_np2:15 lining_spread_open_404k_np2:15; do
+  record $RESULTS/contact/${name%:*}.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+    --tets 400000 --truth-tets 20000 --head-motion --start ${name#*:} --frames 10 \
+    --variants no-contact contact contact+lips-cut-whole --interleave --max-seconds 1500 --abort-seconds 4000 \
+    -v 2> $RESULTS/contact/${name%:*}.log
+done
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

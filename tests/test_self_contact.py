@@ -14,14 +14,13 @@ from petsc4py import PETSc
 import numpy as np
 import ipctk
 import pytest
-from scipy.spatial import cKDTree
 import dolfinx.fem.petsc as fem_petsc
 
 from face_dolfinx.capture.synthetic import control_curves, truth_contact_options
 from face_dolfinx.model.bones import jaw_pose
 from face_dolfinx.model.folder import load_model
 from face_dolfinx.physics.points import PointEvaluator
-from face_dolfinx.physics.problem import BLEND_WIDTHS, FaceProblem
+from face_dolfinx.physics.problem import FaceProblem
 from face_dolfinx.physics.self_contact import PATTERN_SLIDE, LipContact, LipContactSettings, LipIterates, lip_facets
 from face_dolfinx.sensitivities.columns import EquilibriumSensitivity
 
@@ -585,60 +584,6 @@ def test_a_push_out_through_the_lips_pushes_the_other_lip_along_or_is_not_solved
     problem.solver.snes.cancelMonitor()
     if mended:
         assert min(distances) > 0.0  # no Newton iterate with the lips intersecting
-
-
-def test_a_prediction_through_the_pressed_lips_holds_the_lips_back_only(model):
-    """A Gauss-Newton prediction of the pressed lips closing further can take the lower lip
-    through the upper (the lips' second closure of the open stretch at 404K). Newton starts from
-    the prediction with every lip node held back where the lips' bound stops it and the nodes
-    beyond the widest blend around the lips at the predicted place, and reaches the equilibrium;
-    cut as a whole (``hold_lips_locally`` off) the whole face starts that fraction of the way.
-    Here the prediction is the next equilibrium (the jaw half a degree further closed) with the
-    lower lip 0.1 mm higher."""
-    p = FaceProblem(model, lip_contact=LipContactSettings())
-    lips, comm = p.lips, MPI.COMM_WORLD
-    assert p.solve(activations=sphincter(model), jaw=jaw_pose(model.jaw, CLOSED)).converged
-    start, start_controls = p.u.x.array.copy(), p.controls.copy()
-    closer = jaw_pose(model.jaw, CLOSED - np.radians(0.5))
-    assert p.solve(jaw=closer).converged
-    target = p.u.x.array.copy()
-    # A lift of the lower lip that fades out over the slit between the lips (0.48 mm at rest)
-    # and 4 mm away from it.
-    from_lower = cKDTree(lips.surface.rest[np.setdiff1d(lips.lower_nodes, lips.upper_nodes)]).query(p.dof_coordinates)[0]
-    from_upper = cKDTree(lips.surface.rest[np.setdiff1d(lips.upper_nodes, lips.lower_nodes)]).query(p.dof_coordinates)[0]
-    lift = np.clip((from_upper - from_lower) / 0.5 + 0.5, 0.0, 1.0) * np.clip(1.0 - from_lower / 4.0, 0.0, 1.0)
-    lift[p.bone_blocks] = 0.0
-    guess = target + (0.1 * lift[:, None] * lips.up).reshape(-1)
-    assert lips.admissible_fraction(start, guess) < 0.5
-    from_lips = cKDTree(lips.surface.rest).query(p.dof_coordinates)[0]
-    far = from_lips > max(BLEND_WIDTHS)
-    assert comm.allreduce(int(np.count_nonzero(far[:p.V.dofmap.index_map.size_local])))  > 0
-    newton, starts = p.solver.newton, []
-
-    def recorded(**options):
-        starts.append(p.u.x.array.copy())
-        return newton(**options)
-
-    p.solver.newton = recorded
-    for held_locally in (True, False):
-        p.adopt(start_controls, start)
-        p.hold_lips_locally = held_locally
-        report = p.solve(jaw=closer, guess=guess)
-        assert report.converged and report.load_steps == 1
-        assert np.abs(p.u.x.array - target).max() < 1e-4
-        begun = starts[-1]
-        assert lips.admissible_fraction(start, begun) == 1.0 and not lips.intersects(begun)
-        way = np.linalg.norm((begun - start).reshape(-1, 3), axis=1) / np.linalg.norm(
-            (guess - start).reshape(-1, 3), axis=1).clip(1e-12)
-        lip_blocks = lips.surface.local_blocks
-        moving = np.linalg.norm((guess - start).reshape(-1, 3)[lip_blocks], axis=1) > 1e-6
-        lip_way = comm.allreduce(float(way[lip_blocks][moving].max(initial=0.0)), op=MPI.MAX)
-        assert 0.0 < lip_way < 1.0
-        farthest = comm.allreduce(float(np.abs(begun - guess).reshape(-1, 3)[far].max(initial=0.0)), op=MPI.MAX)
-        if held_locally:
-            assert farthest < 1e-12  # the face beyond the blend starts at the prediction
-        else:
-            assert comm.allreduce(float(way[far].max(initial=0.0)), op=MPI.MAX) <= lip_way + 1e-9
 
 
 def test_the_step_bound_stops_short_of_intersecting_lips(pressed, monkeypatch):

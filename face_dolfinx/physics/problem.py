@@ -64,11 +64,6 @@ PROJECTION_LIMIT = 0.5
 # its whole way (``FaceProblem._bounded_locally``); the first that flattens no cell is taken.
 BLEND_WIDTHS = (2.0, 4.0, 8.0, 16.0)
 LOCAL_CUT_NODES = 64  # the most vertices of flattened cells for which it is cut short around them only
-# The lips of a prediction that would let them pass each other are held back to this fraction of
-# the lips' bound (``FaceProblem._lips_held_locally``): a path that ends exactly at the bound is cut
-# again by its round-off (0.999999999998 after a copy of the start moved back and forth).
-LIP_HOLD_SHORTFALL = 0.9
-LIP_HOLD_ROUNDS = 4  # the most times the held path's own bound shortens it again
 
 
 @dataclass
@@ -321,10 +316,6 @@ class FaceProblem:
         # Whether a prediction that would flatten a few cells is cut short around them
         # (``_bounded_locally``) before it is cut as a whole; False only to measure it.
         self.bound_prediction_locally = True
-        # Whether a prediction that would let the lips pass each other holds the lips back only
-        # (``_lips_held_locally``) before it is cut as a whole; False only to measure it.
-        self.hold_lips_locally = True
-        self._lip_distance = None  # rest distance of every node to the lips' nearest node
         energy_terms = tuple(term for term in (self.contact, self.teeth_contact, self.lips) if term is not None)
         if definite_tangent is None:
             definite_tangent = degree == 1 and (self.lips is not None or self.teeth_contact is not None)
@@ -518,8 +509,7 @@ class FaceProblem:
 
         Newton starts from ``guess`` (a dof array, e.g. the Gauss-Newton prediction X + dX/dc dc)
         if given, cut short around a few nodes where it would flatten cells
-        (``_bounded_locally``) and with the lips held back where they would pass each other
-        (``_lips_held_locally``), then pulled back as a whole where it would still invert cells or
+        (``_bounded_locally``), then pulled back as a whole where it would still invert cells or
         break a contact (with lip or teeth contact, only its part beyond the current
         equilibrium carried rigidly with the cranium's change; the lining it takes into the teeth
         moved out of them instead where that is small), else from the current equilibrium carried
@@ -547,8 +537,6 @@ class FaceProblem:
                 guess, fraction = self._bounded_locally(carried, guess)
             else:
                 fraction = self.solver.inversion_guard.step_fraction(carried, carried - guess)
-            if fraction == 1.0 and self.lips is not None and self.hold_lips_locally:
-                guess = self._lips_held_locally(carried, guess)
             cuts = [("inversion guard", fraction)]
             # ... or let the lips pass through each other, or the lining into the teeth
             for label, term in (("lips", self.lips), ("teeth", self.teeth_contact), ("objects", self.contact)):
@@ -661,41 +649,6 @@ class FaceProblem:
                 return bounded, 1.0
         log.debug("prediction not cut short around a few nodes: a blend over %g mm still flattens a cell", width)
         return guess, whole
-
-    def _lips_held_locally(self, carried: np.ndarray, guess: np.ndarray) -> np.ndarray:
-        """The prediction ``guess`` (from ``carried``) with the lips held back where it would let
-        them pass each other: every lip node goes as far as the lips' bound lets the whole
-        prediction go (the lips' own path, stopped before they touch), the nodes around them return
-        to the whole way over a width of ``BLEND_WIDTHS`` (rest distance, a smoothstep), the bones'
-        nodes all the way. Cut as a whole at that bound, the jaw closing on the pressed lips took
-        the whole face 0.21 of its way, and Newton lifted the rest of the head's and the jaw's
-        motion onto the pressed lips (the lips' second closure, docs/performance.md). ``guess``
-        itself where the lips let it be, or where every width flattens a cell (collective)."""
-        step = guess - carried
-        bound = self.lips.admissible_fraction(carried, guess)
-        if bound == 1.0:
-            return guess
-        held = LIP_HOLD_SHORTFALL * bound
-        for _ in range(LIP_HOLD_ROUNDS):
-            cut = self.lips.admissible_fraction(carried, carried + held * step)
-            if cut == 1.0:
-                break
-            held *= LIP_HOLD_SHORTFALL * cut
-        else:
-            return guess
-        if self._lip_distance is None:
-            self._lip_distance = cKDTree(self.lips.surface.rest).query(self.dof_coordinates)[0]
-        for width in BLEND_WIDTHS:
-            ramp = np.minimum(self._lip_distance / width, 1.0)
-            scales = held + (1.0 - held) * ramp * ramp * (3.0 - 2.0 * ramp)
-            scales[self.bone_blocks] = 1.0
-            bounded = carried + (scales[:, None] * step.reshape(-1, 3)).reshape(-1)
-            if not self.solver.inversion_guard.flattens(carried, bounded):
-                log.debug("prediction's lips held back to %.3g of the way, the rest returning to the whole way "
-                          "over %g mm", held, width)
-                return bounded
-        log.debug("prediction's lips not held back alone: a blend over %g mm flattens a cell", width)
-        return guess
 
     def _lips_intersect(self) -> bool:
         """Whether the lips intersect at the unknown. The push-out of the lining before the teeth's
