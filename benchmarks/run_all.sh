@@ -187,9 +187,10 @@ for name in crawl_relaxation_open_404k_np2 slow_fall_relaxation_open_404k_np2 li
     --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
     --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/$name.log
 done
-# The lips of a prediction held back alone against the prediction cut as a whole at the lips' bound, on
-# both stretches; and (at the commit of its manifest entry, whose lining projection also moved the flesh
-# around the lining along) lining_spread_open_404k_np2.
+# At the commits of their manifest entries, whose contact_tracking.py had the variant contact+lips-cut-whole:
+# the lips of a prediction held back alone against the prediction cut as a whole at the lips' bound, on
+# both stretches, and with the lining's projection spread to the flesh around it in both variants
+# (lining_spread_open_404k_np2).
 for name in lips_held_404k_np2:5 lips_held_open_404k_np2:15 lining_spread_open_404k_np2:15; do
   record $RESULTS/contact/${name%:*}.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
     --tets 400000 --truth-tets 20000 --head-motion --start ${name#*:} --frames 10 \

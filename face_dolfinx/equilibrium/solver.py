@@ -1093,10 +1093,9 @@ class QuasistaticSolver:
     def newton(self, lifting: bool = False) -> tuple[bool, int, str]:
         """One SNES solve from the current unknown; Dirichlet values are reached by the Newton steps.
         ``lifting``: a solve that lifts held surface nodes far to their Dirichlet values (a contact
-        object's push-out or carry, ``face_dolfinx.physics.contact``) or the bones the rest of their
-        way from a prediction cut short (``FaceProblem.solve``), whose corrections the inversion
-        guard cuts while the flesh follows: a fresh factor whose correction it cut is kept for one
-        more iteration (``FactorReusePolicy``). Refactorised at every cut, the teeth's
+        object's push-out or carry, ``face_dolfinx.physics.contact``), whose corrections the
+        inversion guard cuts while the flesh follows: a fresh factor whose correction it cut is
+        kept for one more iteration (``FactorReusePolicy``). Refactorised at every cut, the teeth's
         lifted push-out of the lips' second closure took 9 factorisations in 11 iterations
         (docs/performance.md)."""
         self.reuse_policy.start_solve()

@@ -586,8 +586,7 @@ class FaceProblem:
             if self._lips_intersect():
                 ok, iterations, why = False, 0, "the lips intersect after the lining was pushed out"
             else:
-                # From a prediction cut short, Newton lifts the bones the rest of their way.
-                ok, iterations, why = self.solver.newton(lifting=fraction < 1.0)
+                ok, iterations, why = self.solver.newton()
             if ok:
                 return SolveReport(True, held + iterations, 1, why, time.perf_counter() - began)
             log.info("Newton from the predicted shape failed (%s); continuing from the last "
