@@ -406,7 +406,7 @@ class FactorReusePolicy:
         self.refreshed_in_solve = False  # ... by the Newton solve under way
         self.fresh_factor = True         # the current iteration's correction comes from its own tangent
         self.step_was_cut = False        # the inversion guard shortened the last correction
-        self.keeps_cut_fresh_factor = False  # ... unless the factor is fresh: kept once (a lifting solve)
+        self.keeps_cut_fresh_factor = False  # a fresh factor the guard cut is kept once (a lifting solve)
         self.step_bound = 1.0            # fraction of the last correction the energy terms allowed
         self.correction_size = math.inf  # mm, largest dof change of the last correction
         self.contraction = 0.0           # residual norm ratio of the last iteration
