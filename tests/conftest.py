@@ -1,18 +1,19 @@
-"""Shared fixtures. The small built-in face is built once per session (and cached on disk under
-meshes/cache/, so later sessions find it instantly); under ``mpirun -n 2 python -m pytest``
-every rank gets the same folder."""
+"""Shared fixtures. The tests run on the small built-in face as committed in meshes/small_face/
+(the generator's mesh depends on the CPU: meshes/freeze_small_face.py); under
+``mpirun -n 2 python -m pytest`` every rank reads the same folder."""
 import pathlib
 
 import pytest
 from mpi4py import MPI
 
 SMALL_FACE_TETS = 5000
+SMALL_FACE = pathlib.Path(__file__).resolve().parents[1] / "meshes" / "small_face"
 
 
 @pytest.fixture(scope="session")
 def builtin_model_path():
-    from face_dolfinx.model.anatomy import build_builtin_face
-    return build_builtin_face(target_tets=SMALL_FACE_TETS, comm=MPI.COMM_WORLD)
+    """The small built-in face's model folder (built at SMALL_FACE_TETS, committed)."""
+    return SMALL_FACE
 
 
 @pytest.fixture(scope="module")

@@ -1,8 +1,9 @@
 """The built-in face generator: resolution, element quality, tags, muscles, sites, jaw, cache.
 
-Checks run on the files of the small session model (tests/conftest.py), read with h5py, so
+Checks run on the files of the small built-in face (meshes/small_face/, tests/conftest.py), read with h5py, so
 they are the same on every rank; checks of the distributed mesh live in test_model.py.
 """
+import json
 import os
 import tomllib
 
@@ -13,6 +14,7 @@ from mpi4py import MPI
 
 from conftest import SMALL_FACE_TETS
 from face_dolfinx.model.anatomy import build_builtin_face, builder
+from face_dolfinx.model.anatomy.description import load_description
 from face_dolfinx.model.folder import tet_volumes_and_quality
 from face_dolfinx.alignment.surface import SkinSurface
 
@@ -215,14 +217,24 @@ def test_expressions(face):
     assert expressions["jaw_open"]["jaw_opening_deg"] > 0
 
 
-def test_second_build_is_a_cache_hit(builtin_model_path, monkeypatch):
+def test_second_build_is_a_cache_hit(monkeypatch):
     """The same description and size again: the cached folder, nothing generated."""
+    first = build_builtin_face(target_tets=SMALL_FACE_TETS, comm=MPI.COMM_WORLD)
+
     def generates(description, target_tets, folder):
         raise AssertionError("the cached face was built again")
 
     monkeypatch.setattr(builder, "generate", generates)
     again = build_builtin_face(target_tets=SMALL_FACE_TETS, comm=MPI.COMM_WORLD)
-    assert again == builtin_model_path
+    assert again == first
+
+
+def test_the_committed_small_face_is_the_current_generators(builtin_model_path):
+    """The tests' face (meshes/small_face/) was built from the current description and generator
+    (the cache key covers both): after a change, ``python meshes/freeze_small_face.py``."""
+    recorded = json.loads((builtin_model_path / "provenance.json").read_text())
+    current = builder.cache_key(load_description(builder.DESCRIPTION_FILE), SMALL_FACE_TETS)
+    assert recorded["cache_key"] == current, "meshes/small_face/ is stale: run python meshes/freeze_small_face.py"
 
 
 def test_killed_build_leaves_nothing_that_looks_complete(tmp_path, monkeypatch):

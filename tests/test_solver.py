@@ -255,11 +255,35 @@ def test_a_user_face_option_overrides_the_problem_default():
     database["face_snes_max_it"] = 7
     try:
         problem = FaceProblem(slab_model(), petsc_options={"snes_max_it": 40})
-        assert problem.solver.snes.getTolerances()[3] == 7
+        assert problem.solver.iteration_limit == 7
         assert database.getInt("face_snes_max_it") == 7
     finally:
         database.delValue("face_snes_max_it")
-    assert FaceProblem(slab_model()).solver.snes.getTolerances()[3] == 25
+    assert FaceProblem(slab_model()).solver.iteration_limit == 25
+
+
+def test_a_converging_phase_finishes_past_the_iteration_limit():
+    """The iteration limit (snes_max_it) stops a Newton whose corrections still come from fresh
+    factors; one in its converging phase (a kept factor contracting the residual) goes on to its
+    step test. The slab's three muscles at 1: fresh factors up to the 4th iterate, the kept one's
+    corrections from there."""
+    from face_dolfinx.equilibrium.solver import CONVERGING_PHASE_ITERATIONS
+    phases = {}
+    for limit in (25, 5, 3):
+        problem = FaceProblem(slab_model(), petsc_options={"snes_max_it": limit})
+        policy = problem.solver.reuse_policy
+        phases[limit] = []
+        problem.solver.snes.setMonitor(lambda snes, it, norm: phases[limit].append(policy.converging_phase))
+        report = problem.solve(activations=[1.0, 1.0, 1.0])
+        assert report.converged
+        if limit == 25:
+            free = report.newton_iterations
+            assert report.load_steps == 1 and phases[25][4:] == [True] * (free - 3) and not any(phases[25][:4])
+            assert free - 5 < CONVERGING_PHASE_ITERATIONS
+        elif limit == 5:
+            assert report.load_steps == 1 and report.newton_iterations == free > limit
+        else:
+            assert report.load_steps > 1  # Newton stopped at 3: the continuation took over
 
 
 def test_the_tangent_structure_is_explicit():

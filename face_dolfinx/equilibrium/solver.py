@@ -139,6 +139,9 @@ KRYLOV_OPTIONS = {
 # 5 / 7 / 17 (10 / 12 / 27 iterations); at 50K a factorisation costs about what the extra
 # iterations do, at 400K several times more (docs/performance.md).
 CONVERGING_CORRECTION = 0.1
+# Iterations a converging phase may run past the iteration limit: enough to take a correction of
+# CONVERGING_CORRECTION below the converging phase's step tolerance (1e-10 mm) at a contraction of 4.
+CONVERGING_PHASE_ITERATIONS = 15
 
 # Inversion guard (see InversionGuard, _precheck): measured on the 50K face (rest -> smile,
 # jaw opening, pucker), cp capped at lambda <= 1 stalled on the pucker and uncapped ran into
@@ -673,6 +676,10 @@ class QuasistaticSolver:
         self.snes.setLineSearchPreCheck(self._precheck)
         self.snes.setFromOptions()
         self.snes.getKSP().setFromOptions()
+        # PETSc ends Newton at its own limit whatever the convergence test says: it gets room for a
+        # converging phase past the limit ``_converged`` applies (snes_max_it, iteration_limit).
+        self.iteration_limit = self.snes.getTolerances()[3]
+        self.snes.setTolerances(max_it=self.iteration_limit + CONVERGING_PHASE_ITERATIONS)
 
     def _create_tangent(self, form: fem.FormMetaClass) -> PETSc.Mat:
         """A matrix for ``form``'s tangent whose sparsity also holds the energy terms' couplings."""
@@ -738,8 +745,10 @@ class QuasistaticSolver:
             self.reuse_policy.record_correction(correction_size)
             return snapped or relaxed
         fraction, bound = self._step_bounds(x, step, GUARDED_MAX_LAMBDA)
+        # Only the guard's own cut counts towards its stall: where a term's bound cuts the step
+        # shorter still, that term, not inversion, limits Newton.
         if self.reuse_policy.fresh_factor:
-            self._guard_cuts = self._guard_cuts + 1 if fraction < STALLED_GUARD_FRACTION else 0
+            self._guard_cuts = self._guard_cuts + 1 if fraction < min(STALLED_GUARD_FRACTION, bound) else 0
         # A step from an old factor that the guard had to cut says the factor is stale, not that
         # Newton stalls: the next iteration refactorises instead.
         # (The bound is of the line search's longest step, GUARDED_MAX_LAMBDA corrections.)
@@ -823,7 +832,8 @@ class QuasistaticSolver:
         """PETSc's default test (atol, rtol, stol, max_it, NaN), the step tolerance and the
         guard's stall test. Also gives the residual norm to the reuse policy."""
         xnorm, step_norm, fnorm = norms
-        rtol, atol, stol, max_it = snes.getTolerances()
+        rtol, atol, stol, _ = snes.getTolerances()
+        max_it = self.iteration_limit
         reasons = PETSc.SNES.ConvergedReason
         policy = self.reuse_policy
         policy.record_residual(iteration, fnorm)
@@ -878,7 +888,9 @@ class QuasistaticSolver:
         if (small_step or small_release) and self.bc_error(snes.getSolution()) <= DIRICHLET_TOLERANCE:
             self.energy_stops += int(not small_step)
             return reasons.CONVERGED_SNORM_RELATIVE
-        if iteration >= max_it:
+        # The iteration limit stops a Newton that is not converging: a converging phase (a kept
+        # factor cutting the residual at least 1 / REFRESH_CONTRACTION per iteration) finishes.
+        if iteration >= max_it and not (converging_phase and iteration < max_it + CONVERGING_PHASE_ITERATIONS):
             return reasons.DIVERGED_MAX_IT
         if self._guard_cuts >= STALLED_GUARD_ITERATIONS:
             if self.comm.rank == 0:

@@ -155,8 +155,6 @@ class ObjectFeatureContact(FaceContactPotential):
     the contact surface (module docstring); spheres act on the triangles and every object on the
     nodes as there."""
 
-    exact_near_solution = True
-
     def __init__(self, space, facets, settings):
         super().__init__(space, facets, settings)
         triangles = self.surface.triangles

@@ -231,9 +231,9 @@ class FaceProblem:
         True: after every correction; False: never.
     definite_tangent : Newton's tangent takes each cell's flesh stiffness with its clearly negative
         curvature clamped (``equilibrium.definite``), until Newton is near the solution; the
-        equilibrium is the same. None (default): on with lip or teeth contact, where the teeth
-        squeeze the lining into cells whose exact stiffness makes the tangent nearly singular
-        (docs/performance.md, "A definite flesh tangent"); P1 displacements only.
+        equilibrium is the same. None (default): on with any contact, where the teeth squeeze the
+        lining, or an object the skin, into cells whose exact stiffness makes the tangent nearly
+        singular (docs/performance.md, "A definite flesh tangent"); P1 displacements only.
     """
 
     def __init__(self, model, *, degree: int = 1, quadrature_degree: int | None = None,
@@ -318,7 +318,7 @@ class FaceProblem:
         self.bound_prediction_locally = True
         energy_terms = tuple(term for term in (self.contact, self.teeth_contact, self.lips) if term is not None)
         if definite_tangent is None:
-            definite_tangent = degree == 1 and (self.lips is not None or self.teeth_contact is not None)
+            definite_tangent = degree == 1 and bool(energy_terms)
         # Pressed lips settle in many collision-limited Newton steps (75 for the 5K face's lips
         # closed by the orbicularis oris at 1): Newton is given room before continuation.
         lip_newton = {"snes_max_it": LIP_NEWTON_ITERATIONS} if self.lips is not None else {}
