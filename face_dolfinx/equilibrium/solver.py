@@ -142,6 +142,12 @@ CONVERGING_CORRECTION = 0.1
 # Iterations a converging phase may run past the iteration limit: enough to take a correction of
 # CONVERGING_CORRECTION below the converging phase's step tolerance (1e-10 mm) at a contraction of 4.
 CONVERGING_PHASE_ITERATIONS = 15
+# mN/mm: a converging phase stops on its step only once the residual is also below this times the
+# step tolerance (1e-6 mN at the default 1e-8 mm; ``_converged``): the flesh's stiffness, about
+# 10-100 mN/mm, turns a correction into a residual. A sphere pressed 5 mm into the small face's
+# cheek, 2-3e4 mN/mm stiff at the end, stopped at a correction of 2e-11 mm with 6.8e-7 mN left on
+# one rank and 2.0e-6 on two.
+RESIDUAL_PER_STEP = 100.0
 
 # Inversion guard (see InversionGuard, _precheck): measured on the 50K face (rest -> smile,
 # jaw opening, pucker), cp capped at lambda <= 1 stalled on the pucker and uncapped ran into
@@ -880,6 +886,12 @@ class QuasistaticSolver:
             return reasons.CONVERGED_FNORM_RELATIVE
         step_tolerance = 0.01 * self.step_tolerance if converging_phase else self.step_tolerance
         small_step = iteration > 0 and (step_norm < stol * xnorm or policy.correction_size < step_tolerance)
+        # Against a stiff barrier a correction that small still leaves a large residual: cheap as
+        # they are, the converging phase's iterations go on until the residual is small too
+        # (RESIDUAL_PER_STEP), or the correction two decades smaller still.
+        if (small_step and converging_phase and fnorm >= RESIDUAL_PER_STEP * self.step_tolerance
+                and policy.correction_size >= 0.01 * step_tolerance):
+            small_step = False
         small_release = (iteration > 0 and self.energy_tolerance is not None
                          and abs(self._released) < self.energy_tolerance)
         # A step that a bound shortened leaves the bones short of their values by that much: the
