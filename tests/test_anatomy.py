@@ -1,7 +1,7 @@
 """The built-in face generator: resolution, element quality, tags, muscles, sites, jaw, cache.
 
-Checks run on the files of the small built-in face (meshes/small_face/, tests/conftest.py), read with h5py, so
-they are the same on every rank; checks of the distributed mesh live in test_model.py.
+Checks run on the files of the small built-in face (meshes/small_face/, tests/conftest.py), read
+with h5py, so they are the same on every rank; checks of the distributed mesh live in test_model.py.
 """
 import json
 import os
