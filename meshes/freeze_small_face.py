@@ -1,16 +1,16 @@
 """Freeze the small built-in face into ``meshes/small_face/``: the face every test runs on.
 
-The generator's mesh depends on the CPU it runs on (docs/builtin_face.md, "Known weaknesses": the
-same description and code gave 5 064 tets on one machine and 5 136 on another), and the contact
-tests' Newton paths depend on the mesh. So the tests load this committed copy rather than build the
-face. Run this after a change to ``meshes/builtin_face.toml`` or to the generator (a test in
-tests/test_anatomy.py fails while the copy is stale), from the repository root::
+The tests' Newton paths, iteration budgets and tolerances are tuned on this face, so they read this
+committed copy rather than build it: a change of the generator or of ``meshes/builtin_face.toml``
+changes their face only when the copy is rebuilt, from the repository root::
 
     python meshes/freeze_small_face.py
 
-It builds the face at SMALL_FACE_TETS (through the cache), replaces ``meshes/small_face/`` with it
-and writes ``provenance.json`` there: the generator's cache key, the commit, the command, the
-machine (with whether its CPU has AVX-512, which numpy's kernels use where present).
+(a test in tests/test_anatomy.py fails while the copy is stale; another checks that the generator
+builds it bit for bit on the machine the tests run on). It builds the face at SMALL_FACE_TETS
+(through the cache), replaces ``meshes/small_face/`` with it and writes ``provenance.json`` there:
+the generator's cache key, the commit, the command, the machine (with whether its CPU has
+AVX-512, where numpy's own kernels differ from the C library's; docs/builtin_face.md).
 """
 import json
 import pathlib
@@ -20,12 +20,11 @@ import sys
 from mpi4py import MPI
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-SMALL_FACE = ROOT / "meshes" / "small_face"
-SMALL_FACE_TETS = 5000
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import provenance  # noqa: E402  (benchmarks/provenance.py: commit, machine)
 from face_dolfinx.model.anatomy import build_builtin_face  # noqa: E402
+from face_dolfinx.model.anatomy.builder import SMALL_FACE, SMALL_FACE_TETS  # noqa: E402
 
 
 def cpu_has_avx512() -> bool:

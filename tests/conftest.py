@@ -1,13 +1,12 @@
 """Shared fixtures. The tests run on the small built-in face as committed in meshes/small_face/
-(the generator's mesh depends on the CPU: meshes/freeze_small_face.py); under
-``mpirun -n 2 python -m pytest`` every rank reads the same folder."""
+(meshes/freeze_small_face.py); under ``mpirun -n 2 python -m pytest`` every rank reads the same
+folder."""
 import pathlib
 
 import pytest
 from mpi4py import MPI
 
-SMALL_FACE_TETS = 5000
-SMALL_FACE = pathlib.Path(__file__).resolve().parents[1] / "meshes" / "small_face"
+from face_dolfinx.model.anatomy.builder import SMALL_FACE
 
 
 @pytest.fixture(scope="session")

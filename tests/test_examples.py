@@ -6,7 +6,7 @@ import pathlib
 from mpi4py import MPI
 import numpy as np
 
-from conftest import SMALL_FACE_TETS
+from face_dolfinx.model.anatomy.builder import SMALL_FACE_TETS
 
 EXAMPLES = pathlib.Path(__file__).resolve().parents[1] / "examples"
 

@@ -10,12 +10,17 @@ The pipeline (each step in its own module):
   muscles.py      volume fractions and fibers of the 32 muscles
   sites.py        markers and landmarks on the skin
   teeth.py        the rigid upper and lower teeth behind the lips
+  libm.py         sin, cos, exp and power from the C library, for the same face on every CPU
 and model.write_model writes the folder.
 
 Models are cached under meshes/cache/<resolution>-<hash>/, the hash covering the description
 file, the target tet count and the generator's source code, so any change rebuilds. A build
 goes to a hidden temporary folder, is checked by loading it, and is renamed into place: a
 killed build never leaves a folder that looks complete.
+
+The tests run on the face at SMALL_FACE_TETS as committed in SMALL_FACE
+(meshes/freeze_small_face.py writes it), so that a change of the generator changes their face only
+when that copy is rebuilt.
 """
 import hashlib
 import logging
@@ -41,6 +46,8 @@ log = logging.getLogger(__name__)
 REPOSITORY = Path(__file__).resolve().parents[3]
 DESCRIPTION_FILE = REPOSITORY / "meshes" / "builtin_face.toml"
 DEFAULT_CACHE = REPOSITORY / "meshes" / "cache"
+SMALL_FACE = REPOSITORY / "meshes" / "small_face"
+SMALL_FACE_TETS = 5000
 MODEL_NAME = "builtin-face"
 
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from . import libm
 from .description import Description, Refinement
 from .openings import Opening
 
@@ -49,7 +50,7 @@ class SizeField:
         # Geometric mean of the singular values of the 3x2 Jacobian [d_theta d_phi]: the square
         # root of its area stretch, from the determinant of its Gram matrix.
         a, b, c = (d_theta * d_theta).sum(-1), (d_theta * d_phi).sum(-1), (d_phi * d_phi).sum(-1)
-        stretch = (a * c - b * b) ** 0.25
+        stretch = libm.power(a * c - b * b, 0.25)
 
         def on_skin(curve_points):
             return shape.point(curve_points[:, 0], curve_points[:, 1], 1.0)

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import libm
 from .description import Description
 
 # Anchors sit this far (degrees) outside an opening's corner, on the closed skin, so that a
@@ -62,7 +63,7 @@ def eye_openings(description: Description, samples: int = 31) -> tuple[Opening, 
     if up[1] < 0:
         up = -up
     base = inner + s * along
-    lid = np.sin(np.pi * s)
+    lid = libm.sin(np.pi * s)
     upper, lower = base + eye.upper_height * lid * up, base - eye.lower_height * lid * up
     left = Opening("eye_left", upper, lower)
     mirror = np.array([-1.0, 1.0])

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
+from . import libm
+
 LAYERS = ("bone", "flesh", "thickness")
 
 
@@ -67,7 +69,7 @@ class Feature:
         blend = s * s * (3.0 - 2.0 * s)
         amplitude = self.amplitude[0] + blend * (self.amplitude[1] - self.amplitude[0])
         width = self.width[0] + blend * (self.width[1] - self.width[0])
-        return amplitude * np.exp(-0.5 * (rho / width) ** self.power)
+        return amplitude * libm.exp(-0.5 * libm.power(rho / width, self.power))
 
 
 @dataclass(frozen=True)
@@ -102,15 +104,15 @@ class FaceShape:
     def direction(theta, phi) -> np.ndarray:
         """Unit ray directions, shape (..., 3), for angles in degrees."""
         th, ph = np.radians(theta), np.radians(phi)
-        return np.stack([np.cos(ph) * np.sin(th), np.sin(ph), np.cos(ph) * np.cos(th)], axis=-1)
+        return np.stack([libm.cos(ph) * libm.sin(th), libm.sin(ph), libm.cos(ph) * libm.cos(th)], axis=-1)
 
     def base_radius(self, theta, phi):
         th, ph = np.radians(theta), np.radians(phi)
         n, m = self.breadth_exponent, self.vertical_exponent
         a, c = self.half_breadth(phi), self.front_depth(phi)
-        horizontal = (np.abs(np.sin(th) / a) ** n + np.abs(np.cos(th) / c) ** n) ** (-1.0 / n)
+        horizontal = libm.power(libm.power(np.abs(libm.sin(th) / a), n) + libm.power(np.abs(libm.cos(th) / c), n), -1.0 / n)
         cap = np.where(ph > 0, self.top, self.bottom)
-        return ((np.cos(ph) / horizontal) ** m + (np.abs(np.sin(ph)) / cap) ** m) ** (-1.0 / m)
+        return libm.power(libm.power(libm.cos(ph) / horizontal, m) + libm.power(np.abs(libm.sin(ph)) / cap, m), -1.0 / m)
 
     def radii(self, theta, phi) -> tuple[np.ndarray, np.ndarray]:
         """Inner-surface and skin radii along the rays (theta, phi)."""

@@ -9,6 +9,7 @@ phi, radius) to space keeps orientation, see shape.py).
 """
 import numpy as np
 
+from . import libm
 from .description import DentalArch, Teeth
 from .shape import FaceShape
 
@@ -17,7 +18,7 @@ def dental_arch(shape: FaceShape, arch: DentalArch, teeth: Teeth) -> tuple[np.nd
     """Points (mm) and outward triangles of the closed plate over ``arch``'s window."""
     (theta0, theta1), (phi0, phi1) = arch.theta, arch.phi
     inner, _ = shape.radii(0.5 * (theta0 + theta1), 0.5 * (phi0 + phi1))
-    along_theta = np.radians(theta1 - theta0) * float(inner) * np.cos(np.radians(0.5 * (phi0 + phi1)))
+    along_theta = np.radians(theta1 - theta0) * float(inner) * libm.cos(np.radians(0.5 * (phi0 + phi1)))
     along_phi = np.radians(phi1 - phi0) * float(inner)
     counts = [max(2, int(np.ceil(length / teeth.spacing))) for length in (along_theta, along_phi)]
     theta, phi = np.meshgrid(np.linspace(theta0, theta1, counts[0] + 1), np.linspace(phi0, phi1, counts[1] + 1),
