@@ -36,10 +36,11 @@ def cpu_has_avx512() -> bool:
 
 def main() -> None:
     built = build_builtin_face(target_tets=SMALL_FACE_TETS, comm=MPI.COMM_SELF)
+    # Before the copy replaces the committed one: "dirty" then says whether the code was.
+    record = provenance.entry(provenance.this_command(1), SMALL_FACE_TETS, 1, avx512=cpu_has_avx512())
     if SMALL_FACE.exists():
         shutil.rmtree(SMALL_FACE)
     shutil.copytree(built, SMALL_FACE)
-    record = provenance.entry(provenance.this_command(1), SMALL_FACE_TETS, 1, avx512=cpu_has_avx512())
     (SMALL_FACE / "provenance.json").write_text(json.dumps(dict(cache_key=built.name, **record), indent=1) + "\n")
     print(f"{built} -> {SMALL_FACE}")
 
