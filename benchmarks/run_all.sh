@@ -16,6 +16,8 @@ record() { out=$1; shift; $PYTHON benchmarks/provenance.py run --out "$out" --js
 # The same, adding to the result file $1 (which `provenance.py start` emptied).
 add() { out=$1; shift; $PYTHON benchmarks/provenance.py run --out "$out" --json-lines --append -- "$@"; }
 
+# The built-in face at 5K..1M tets: tets, nodes, seconds, peak memory, element quality (docs/builtin_face.md).
+record $RESULTS/model/builtin_face_build.jsonl $PYTHON benchmarks/builtin_face_build.py --tets 5000 50000 400000 1000000
 # Forward solves: 5K..400K tets, 1 and 2 ranks; at 400K also from the 50K face's equilibrium.
 FORWARD="benchmarks/forward_scaling.py --expressions smile jaw_open pucker"
 forward=$RESULTS/forward/forward_5k-404k_np1-np2.jsonl
