@@ -114,12 +114,10 @@ class ContactRelaxation:
         return (self._compile_form(_restricted(self._residual_ufl, tags)),
                 self._compile_form(_restricted(self._jacobian_ufl, tags)))
 
-    def patch_residual(self, x: PETSc.Vec, b: PETSc.Vec, forms: tuple | None = None) -> None:
+    def patch_residual(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
         """b = the residual at x on the rows of the contact surfaces' nodes (the others hold the
-        patch's part of theirs); with ``forms`` (``_forms_over`` the cells around some nodes), on
-        those nodes' rows."""
-        residual, jacobian = forms if forms is not None else self._patch_forms
-        self.assemble(x, b, residual, jacobian)
+        patch's part of theirs)."""
+        self.assemble(x, b, *self._patch_forms)
 
     def _bound(self, y: PETSc.Vec, step: PETSc.Vec) -> float:
         """The largest t in (0, 1] such that y - s t step, s in [0, 1], inverts no patch cell and
@@ -189,7 +187,7 @@ class ContactRelaxation:
             for _ in range(RELAXATION_HALVINGS + 1):
                 y.copy(self._trial)
                 self._trial.axpy(-fraction, self._step)
-                self.patch_residual(self._trial, self._trial_r, forms)
+                self.assemble(self._trial, self._trial_r, *forms)  # exact on the relaxed rows
                 trial_local = self._trial_r.getSubVector(rows)
                 trial_norm = trial_local.norm()
                 self._trial_r.restoreSubVector(rows, trial_local)
