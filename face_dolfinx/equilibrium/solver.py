@@ -384,7 +384,8 @@ class FactorReusePolicy:
     factor, a linear solve takes no
     more than ``krylov_refresh_iterations`` and the residual falls by ``KRYLOV_STALL_CONTRACTION`` or
     more per iteration over the last two. Either way a step that the inversion guard had to cut
-    refreshes the factor (it says the factor is stale, not that Newton stalls), unless
+    (shorter than the energy terms' bounds cut it) refreshes the factor (it says the factor is
+    stale, not that Newton stalls), unless
     ``keeps_cut_fresh_factor`` (a lifting solve, ``QuasistaticSolver.newton``) and the factor is
     fresh: then it is kept for one more iteration.
 
@@ -756,9 +757,10 @@ class QuasistaticSolver:
         if self.reuse_policy.fresh_factor:
             self._guard_cuts = self._guard_cuts + 1 if fraction < min(STALLED_GUARD_FRACTION, bound) else 0
         # A step from an old factor that the guard had to cut says the factor is stale, not that
-        # Newton stalls: the next iteration refactorises instead.
+        # Newton stalls: the next iteration refactorises instead. Where a term's bound cuts the
+        # step shorter still, the guard cut nothing.
         # (The bound is of the line search's longest step, GUARDED_MAX_LAMBDA corrections.)
-        self.reuse_policy.record_correction(correction_size, cut=fraction < 1.0,
+        self.reuse_policy.record_correction(correction_size, cut=fraction < min(1.0, bound),
                                             bound=min(1.0, GUARDED_MAX_LAMBDA * bound), release=2.0 * self._released)
         fraction = min(fraction, bound)
         if fraction < 1.0:
