@@ -179,7 +179,10 @@ record $RESULTS/contact/opening_trace_404k_np2.jsonl mpirun -n 2 $PYTHON benchma
 # and a guard-cut fresh factor kept once in lifting solves, and also in the main solve from a cut prediction;
 # then the code of lifting_factor_kept on a face built on another machine (rebuilt_mesh: 404124 tets), and
 # on that face the teeth's barrier blocks exact near the solution with a converging phase finishing past the
-# iteration limit (exact_teeth_blocks).
+# iteration limit (exact_teeth_blocks); later the built-in face from the C library's sin, cos, exp and power
+# on a CPU with AVX-512 (avx512_machine), contact's checks over the nodes that move (moved_nodes_only), a
+# guard's cut counted only where the guard cut a step shorter than the bounds (guard_cuts_only), and a bounded
+# step judged by the fraction of its correction the line search took (taken_steps).
 for name in crawl_relaxation_404k_np2 slow_fall_relaxation_404k_np2; do
   record $RESULTS/contact/$name.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
     --tets 400000 --truth-tets 20000 --head-motion --start 5 --frames 10 --variants no-contact contact \
@@ -189,7 +192,7 @@ for name in crawl_relaxation_open_404k_np2 slow_fall_relaxation_open_404k_np2 li
     lips_pushed_along_open_404k_np2_rerun lifted_push_out_open_404k_np2 projection_from_cut_open_404k_np2 \
     lifting_factor_kept_open_404k_np2 cut_prediction_lifting_open_404k_np2 rebuilt_mesh_open_404k_np2 \
     exact_teeth_blocks_open_404k_np2 avx512_machine_open_404k_np2 moved_nodes_only_open_404k_np2 \
-    moved_nodes_only_open_404k_np2_rerun; do
+    moved_nodes_only_open_404k_np2_rerun guard_cuts_only_open_404k_np2 taken_steps_open_404k_np2; do
   record $RESULTS/contact/$name.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
     --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
     --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/$name.log

@@ -525,16 +525,17 @@ class Wall:
         return self.fraction
 
 
-def test_a_correction_that_a_contact_bound_cuts_shorter_than_the_guard_keeps_its_fresh_factor():
+def test_corrections_that_a_contact_bound_cuts_shorter_than_the_guard_keep_the_factor():
     """A block clamped at x = 0 whose far face is pushed 6 mm (of 10) towards it, with a ``Wall``
     bounding every correction that would move a dof more than 1.5 mm to a tenth of the line search's
     longest step (two corrections). The first nine corrections' longest steps would invert cells
-    (the guard's own fraction below 1), but the wall cuts them far shorter: the guard cut nothing,
-    and each fresh factor is kept for the next iteration (the tangent of this linear material never
-    changes; the policy refreshes a kept one whose bounded step cut the residual slowly). Counted
-    as guard cuts, they refactorised at every such iteration: 12 factorisations in 15 iterations
-    instead of 8 (as in the 404K face's closing frames, where the teeth's bound cut corrections to
-    0.07-0.16 of their length, docs/performance.md)."""
+    (the guard's own fraction below 1), but the wall cuts them far shorter: the guard cut nothing.
+    The line search takes each bounded step once (a tenth of the correction, not the two tenths
+    the bound allows), which cuts the residual by 0.9, what a step of that length achieves on this
+    linear material: Newton keeps its first factor to the end. Counted as guard cuts, they
+    refactorised at every such iteration (12 factorisations in 15 iterations), and judged as steps
+    of the bound's length, at every other one (8), as in the 404K face's closing frames, where the
+    teeth's bound cut corrections to 0.04-0.16 of their length (docs/performance.md)."""
     import ufl
     from dolfinx import fem, mesh as dmesh
     domain = dmesh.create_box(MPI.COMM_WORLD, [np.zeros(3), np.full(3, 10.0)], [4, 4, 4],
@@ -558,6 +559,6 @@ def test_a_correction_that_a_contact_bound_cuts_shorter_than_the_guard_keeps_its
     converged, iterations, reason = solver.newton()
     assert converged, reason
     assert solver.bc_error() < 1e-8
-    assert sum(wall.guard_would_cut) >= 2
+    assert sum(wall.guard_would_cut) >= 2 and len(wall.guard_would_cut) > 10
     assert not any(cut)
-    assert solver.factorizations <= (iterations + 1) // 2 + 1
+    assert solver.factorizations == 1 < iterations

@@ -375,9 +375,9 @@ class FactorReusePolicy:
     ``refresh_contraction``); from there this solve's last factor finishes the job for as long as
     two iterations together contract as fast. ``across_solves`` True (``reuse_factorization``):
     the last factor, from whichever solve, is kept for as long as every iteration cuts the residual
-    by ``refresh_contraction`` or more (a step that an energy term's collision-free bound shortened
-    to a fraction t of the correction: by 1 - t (1 - ``refresh_contraction``), what a Newton step
-    of that length achieves), and a fresh one for the next iteration at least: a fresh tangent
+    by ``refresh_contraction`` or more (a step that an energy term's collision-free bound shortened,
+    of which the line search took a fraction t of the correction, ``record_taken``: by
+    1 - t (1 - ``refresh_contraction``), what a Newton step of that length achieves), and a fresh one for the next iteration at least: a fresh tangent
     whose correction cut the residual slowly tells of the problem's nonlinearity (a contact barrier
     settling), not of a stale factor, and another factorisation at once bought nothing (20K
     tracked frames with lip and teeth contact, docs/performance.md); or, with Krylov on the old
@@ -418,6 +418,7 @@ class FactorReusePolicy:
         self.step_was_cut = False        # the inversion guard shortened the last correction
         self.keeps_cut_fresh_factor = False  # a fresh factor the guard cut is kept once (a lifting solve)
         self.step_bound = 1.0            # fraction of the last correction the energy terms allowed
+        self.step_taken = 1.0            # ... and the line search took of it
         self.correction_size = math.inf  # mm, largest dof change of the last correction
         self.contraction = 0.0           # residual norm ratio of the last iteration
         self.release = math.inf          # R . du of the last correction (mN mm)
@@ -430,7 +431,7 @@ class FactorReusePolicy:
     def record_residual(self, iteration: int, norm: float) -> None:
         """The residual norm at the start of Newton iteration ``iteration`` (0: a new solve)."""
         if iteration == 0:
-            self.step_was_cut, self.step_bound = False, 1.0
+            self.step_was_cut, self.step_bound, self.step_taken = False, 1.0, 1.0
             self.correction_size, self.contraction = math.inf, 0.0
             self.two_step_contraction = math.inf
         else:
@@ -443,8 +444,14 @@ class FactorReusePolicy:
         """The last Newton correction moved a dof by at most ``size``; ``cut``: the inversion
         guard shortened it; ``bound``: the energy terms' collision-free bound let it go this
         fraction of the way; ``release``: R . du, the energy norm of the residual it came from."""
-        self.correction_size, self.step_was_cut, self.step_bound = size, cut, bound
+        self.correction_size, self.step_was_cut, self.step_bound, self.step_taken = size, cut, bound, bound
         self.release = release
+
+    def record_taken(self, fraction: float) -> None:
+        """The line search took ``fraction`` (2-norm) of the last correction, which an energy
+        term's bound had shortened: its residual cut is judged by that length, not by the bound's
+        (cp takes a bounded step once where the energy still falls beyond twice it)."""
+        self.step_taken = min(1.0, fraction)
 
     def keep_factor(self, iteration: int, linear_iterations: int | None = None,
                     old_factor_release: Callable[[], float] | None = None, release_tolerance: float = 0.0,
@@ -462,7 +469,7 @@ class FactorReusePolicy:
                            and self.two_step_contraction <= KRYLOV_STALL_CONTRACTION)
         else:
             # A step shortened to t of the correction cuts the residual of a quadratic model by t.
-            expected = 1.0 - self.step_bound * (1.0 - self.refresh_contraction)
+            expected = 1.0 - self.step_taken * (1.0 - self.refresh_contraction)
             contracting = iteration > 0 and self.contraction <= expected
             if (not contracting and old_factor_release is not None and self.across_solves and iteration > 0
                     and self.has_factor and not self.fresh_factor and not self.step_was_cut
@@ -605,6 +612,7 @@ class QuasistaticSolver:
             raise ValueError(f"energy_tolerance = {energy_tolerance}: give a positive energy (mN mm) or None")
         self.energy_tolerance = energy_tolerance if self.energy_terms else None
         self._released = math.inf  # energy the last correction would release (R . du / 2, mN mm)
+        self._bounded_norm = None  # 2-norm of the last correction, if an energy term's bound shortened it
         self._bounding_term = None  # the energy term whose bound cut the last correction most
         self._tracing = False  # the Newton trace is on (rank 0's logger, the same on every rank)
         # True: relax the contact nodes after every correction; None: once Newton crawls on them
@@ -762,6 +770,9 @@ class QuasistaticSolver:
         # (The bound is of the line search's longest step, GUARDED_MAX_LAMBDA corrections.)
         self.reuse_policy.record_correction(correction_size, cut=fraction < min(1.0, bound),
                                             bound=min(1.0, GUARDED_MAX_LAMBDA * bound), release=2.0 * self._released)
+        # The line search takes the bounded step once (cp stops where its next lambda would pass
+        # GUARDED_MAX_LAMBDA) or further: what it took is judged (``_converged``).
+        self._bounded_norm = step.norm() if bound < 1.0 else None
         fraction = min(fraction, bound)
         if fraction < 1.0:
             step.scale(fraction)
@@ -845,6 +856,9 @@ class QuasistaticSolver:
         reasons = PETSc.SNES.ConvergedReason
         policy = self.reuse_policy
         policy.record_residual(iteration, fnorm)
+        if iteration > 0 and self._bounded_norm:
+            policy.record_taken(step_norm / self._bounded_norm)
+        self._bounded_norm = None
         if iteration == 0:
             self._guard_cuts, self._initial_fnorm, self._released = 0, fnorm, math.inf
             # (Whether rank 0 traces: the residual's split below is a reduction over the ranks.)
