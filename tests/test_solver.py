@@ -374,6 +374,21 @@ def test_a_factor_is_not_reused_under_other_dirichlet_conditions():
     assert solver.factor_distance() == np.inf
 
 
+def linear_block():
+    """A 10 mm cube of 4 x 4 x 4 x 6 P1 tetrahedra, linear elastic (small strain, mu 10 kPa,
+    lambda 10 kPa): its space, unknown, energy and residual."""
+    import ufl
+    from dolfinx import mesh as dmesh
+    domain = dmesh.create_box(MPI.COMM_WORLD, [np.zeros(3), np.full(3, 10.0)], [4, 4, 4],
+                              dmesh.CellType.tetrahedron)
+    V = fem.VectorFunctionSpace(domain, ("Lagrange", 1))
+    u = fem.Function(V)
+    eps = ufl.sym(ufl.grad(u))
+    dx = ufl.dx(metadata={"quadrature_degree": 2})
+    energy = (10.0 * ufl.inner(eps, eps) + 5.0 * ufl.tr(eps) ** 2) * dx
+    return V, u, energy, ufl.derivative(energy, u, ufl.TestFunction(V))
+
+
 class DoubleWell:
     """An energy term on one node's z displacement w: a/4 (w^2 - c^2)^2 - f w, a double well whose
     curvature a c^2 at w = 0 exceeds the block's stiffness at the node, so that the total energy
@@ -435,16 +450,7 @@ def test_newton_does_not_climb_to_a_maximum_on_an_exact_indefinite_tangent():
     correction is refused and solved again with the clamped tangent: Newton ends in a well, at a
     minimum (w = 0.848 mm: the block's stiffness at the node, about 14 mN/mm, pulls the well in
     from c = 1 mm)."""
-    import ufl
-    from dolfinx import fem, mesh as dmesh
-    domain = dmesh.create_box(MPI.COMM_WORLD, [np.zeros(3), np.full(3, 10.0)], [4, 4, 4],
-                              dmesh.CellType.tetrahedron)
-    V = fem.VectorFunctionSpace(domain, ("Lagrange", 1))
-    u = fem.Function(V)
-    eps = ufl.sym(ufl.grad(u))
-    dx = ufl.dx(metadata={"quadrature_degree": 2})
-    energy = (10.0 * ufl.inner(eps, eps) + 5.0 * ufl.tr(eps) ** 2) * dx  # kPa: mu 10, lambda 10
-    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    V, u, energy, residual = linear_block()
     clamped = fem.locate_dofs_geometrical(V, lambda x: np.isclose(x[0], 0.0))
     zero = fem.Function(V)
     well = DoubleWell(V, np.array([10.0, 10.0, 10.0]))
@@ -535,17 +541,8 @@ def test_corrections_that_a_contact_bound_cuts_shorter_than_the_guard_keep_the_f
     linear material: Newton keeps its first factor to the end. Counted as guard cuts, they
     refactorised at every such iteration (12 factorisations in 15 iterations), and judged as steps
     of the bound's length, at every other one (8), as in the 404K face's closing frames, where the
-    teeth's bound cut corrections to 0.04-0.16 of their length (docs/performance.md)."""
-    import ufl
-    from dolfinx import fem, mesh as dmesh
-    domain = dmesh.create_box(MPI.COMM_WORLD, [np.zeros(3), np.full(3, 10.0)], [4, 4, 4],
-                              dmesh.CellType.tetrahedron)
-    V = fem.VectorFunctionSpace(domain, ("Lagrange", 1))
-    u = fem.Function(V)
-    eps = ufl.sym(ufl.grad(u))
-    dx = ufl.dx(metadata={"quadrature_degree": 2})
-    energy = (10.0 * ufl.inner(eps, eps) + 5.0 * ufl.tr(eps) ** 2) * dx  # kPa: mu 10, lambda 10
-    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    teeth's bound cut corrections to 0.08-0.16 of their length (docs/performance.md)."""
+    V, u, energy, residual = linear_block()
     pushed = fem.Function(V)
     pushed.interpolate(lambda x: np.vstack([-0.6 * x[0], np.zeros_like(x[1]), np.zeros_like(x[2])]))
     ends = fem.locate_dofs_geometrical(V, lambda x: np.isclose(x[0], 0.0) | np.isclose(x[0], 10.0))
