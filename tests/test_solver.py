@@ -505,7 +505,7 @@ class Wall:
 
     label = "wall"
 
-    def __init__(self, guard: InversionGuard, fraction: float = 0.1, reach: float = 0.5):
+    def __init__(self, guard: InversionGuard, fraction: float, reach: float):
         self.guard, self.fraction, self.reach = guard, fraction, reach
         self.guard_would_cut = []
 
@@ -547,7 +547,7 @@ def test_corrections_that_a_contact_bound_cuts_shorter_than_the_guard_keep_the_f
     pushed.interpolate(lambda x: np.vstack([-0.6 * x[0], np.zeros_like(x[1]), np.zeros_like(x[2])]))
     ends = fem.locate_dofs_geometrical(V, lambda x: np.isclose(x[0], 0.0) | np.isclose(x[0], 10.0))
     guard = InversionGuard(V)
-    wall = Wall(guard, reach=3.0)
+    wall = Wall(guard, fraction=0.1, reach=3.0)
     solver = QuasistaticSolver(residual, u, [fem.dirichletbc(pushed, ends)], tangent="spd", energy=energy,
                                energy_terms=(wall,), inversion_guard=guard,
                                reuse_policy=FactorReusePolicy(across_solves=True), step_tolerance=1e-10)

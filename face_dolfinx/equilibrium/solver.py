@@ -373,21 +373,20 @@ class FactorReusePolicy:
     ``across_solves`` False: a fresh factor at every iteration until Newton is converging (its last
     correction moved no dof by more than ``converging_correction`` mm and cut the residual by
     ``refresh_contraction``); from there this solve's last factor finishes the job for as long as
-    two iterations together contract as fast. ``across_solves`` True (``reuse_factorization``):
-    the last factor, from whichever solve, is kept for as long as every iteration cuts the residual
-    by ``refresh_contraction`` or more (a step that an energy term's collision-free bound shortened,
-    of which the line search took a fraction t of the correction, ``record_taken``: by
-    1 - t (1 - ``refresh_contraction``), what a Newton step of that length achieves), and a fresh one for the next iteration at least: a fresh tangent
-    whose correction cut the residual slowly tells of the problem's nonlinearity (a contact barrier
-    settling), not of a stale factor, and another factorisation at once bought nothing (20K
-    tracked frames with lip and teeth contact, docs/performance.md); or, with Krylov on the old
-    factor, a linear solve takes no
-    more than ``krylov_refresh_iterations`` and the residual falls by ``KRYLOV_STALL_CONTRACTION`` or
-    more per iteration over the last two. Either way a step that the inversion guard had to cut
-    (shorter than the energy terms' bounds cut it) refreshes the factor (it says the factor is
-    stale, not that Newton stalls), unless
-    ``keeps_cut_fresh_factor`` (a lifting solve, ``QuasistaticSolver.newton``) and the factor is
-    fresh: then it is kept for one more iteration.
+    two iterations together contract as fast. ``across_solves`` True (``reuse_factorization``): the
+    last factor, from whichever solve, is kept for as long as every iteration cuts the residual by
+    ``refresh_contraction`` or more (a step that an energy term's collision-free bound shortened, of
+    which the line search took a fraction t of the correction, ``record_taken``: by 1 - t (1 -
+    ``refresh_contraction``), what a Newton step of that length achieves), and a fresh one for the
+    next iteration at least: a fresh tangent whose correction cut the residual slowly tells of the
+    problem's nonlinearity (a contact barrier settling), not of a stale factor, and another
+    factorisation at once bought nothing (20K tracked frames with lip and teeth contact,
+    docs/performance.md); or, with Krylov on the old factor, a linear solve takes no more than
+    ``krylov_refresh_iterations`` and the residual falls by ``KRYLOV_STALL_CONTRACTION`` or more per
+    iteration over the last two. Either way a step that the inversion guard had to cut (shorter than
+    the energy terms' bounds cut it) refreshes the factor (it says the factor is stale, not that
+    Newton stalls), unless ``keeps_cut_fresh_factor`` (a lifting solve,
+    ``QuasistaticSolver.newton``) and the factor is fresh: then it is kept for one more iteration.
 
     With energy terms the solver also gives ``keep_factor`` the old factor's correction at the
     current iterate as the energy it would release (``old_factor_release``): where the residual
