@@ -192,7 +192,8 @@ for name in crawl_relaxation_open_404k_np2 slow_fall_relaxation_open_404k_np2 li
     lips_pushed_along_open_404k_np2_rerun lifted_push_out_open_404k_np2 projection_from_cut_open_404k_np2 \
     lifting_factor_kept_open_404k_np2 cut_prediction_lifting_open_404k_np2 rebuilt_mesh_open_404k_np2 \
     exact_teeth_blocks_open_404k_np2 avx512_machine_open_404k_np2 moved_nodes_only_open_404k_np2 \
-    moved_nodes_only_open_404k_np2_rerun guard_cuts_only_open_404k_np2 taken_steps_open_404k_np2; do
+    moved_nodes_only_open_404k_np2_rerun guard_cuts_only_open_404k_np2 taken_steps_open_404k_np2 \
+    taken_steps_open_404k_np2_rerun; do
   record $RESULTS/contact/$name.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
     --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 --variants no-contact contact \
     --interleave --max-seconds 1500 --abort-seconds 3000 -v 2> $RESULTS/contact/$name.log
