@@ -77,6 +77,9 @@ class ContactRelaxation:
         self.comm = space.mesh.comm
         self.local_iterations = 0  # local Newton steps taken in all
         self._residual_ufl, self._jacobian_ufl, self._compile_form = residual, jacobian, compile_form
+        self._flags = fem.Function(space)  # work function of ``_cells_around``
+        cells = space.mesh.topology.index_map(3).size_local
+        self._cell_blocks = space.dofmap.list.array.reshape(-1, space.dofmap.dof_layout.num_dofs)[:cells]
         patch = self._cells_around(np.concatenate([term.surface.owned_blocks for term in self.terms]))
         self._patch_forms = self._forms_over(patch)
         self.guard = guard.restricted(patch) if guard is not None else None
@@ -99,14 +102,12 @@ class ContactRelaxation:
     def _cells_around(self, blocks: np.ndarray) -> np.ndarray:
         """This rank's cells that have a node among the owned local dof ``blocks`` of any rank
         (collective)."""
-        flags = fem.Function(self.space)
-        flags.x.array[:] = 0.0
-        flags.x.array.reshape(-1, 3)[blocks] = 1.0
-        flags.x.scatter_forward()
-        flagged = flags.x.array.reshape(-1, 3)[:, 0] > 0.5
-        cells = self.space.mesh.topology.index_map(3).size_local
-        cell_blocks = self.space.dofmap.list.array.reshape(-1, self.space.dofmap.dof_layout.num_dofs)[:cells]
-        return np.flatnonzero(flagged[cell_blocks].any(axis=1)).astype(np.int32)
+        flags = self._flags.x
+        flags.array[:] = 0.0
+        flags.array.reshape(-1, 3)[blocks] = 1.0
+        flags.scatter_forward()
+        flagged = flags.array.reshape(-1, 3)[:, 0] > 0.5
+        return np.flatnonzero(flagged[self._cell_blocks].any(axis=1)).astype(np.int32)
 
     def _forms_over(self, cells: np.ndarray) -> tuple:
         """The residual and tangent forms over this rank's ``cells``."""
