@@ -74,18 +74,16 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # the factor kept by the residual's energy norm after a correction the collision-free bound cut
 # however short (``FactorReusePolicy.judged_step_bound`` 0), and a Gauss-Newton step's fresh Jacobian
 # from a factor of the exact tangent instead of Newton's (``FitSettings.fresh_jacobian_from_newton_tangent``), and
-# Newton's tangent with the flesh's exact stiffness in every cell (``FaceProblem(definite_tangent=False)``), and
-# every Gauss-Newton step taken whole however far contact cuts its prediction (``FitSettings.shorten_at_contact`` 0).
+# Newton's tangent with the flesh's exact stiffness in every cell (``FaceProblem(definite_tangent=False)``).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
              "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
-             "narrow-newton-lips", "cut-whole", "judged-cuts", "exact-fresh-jacobians", "exact-flesh",
-             "whole-steps")
+             "narrow-newton-lips", "cut-whole", "judged-cuts", "exact-fresh-jacobians", "exact-flesh")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
             "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
             "contact+narrow-newton-lips", "contact+cut-whole", "contact+judged-cuts", "contact+exact-fresh-jacobians", "contact+exact-flesh",
-            "contact+no-crawl-relaxation", "contact+whole-steps")
+            "contact+no-crawl-relaxation")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 # QuasistaticSolver's counters, per frame
@@ -222,8 +220,6 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
                                                                 False if "no-crawl-relaxation" in ablations else None)))
     if "exact-fresh-jacobians" in ablations:
         settings = replace(settings, fit=replace(settings.fit, fresh_jacobian_from_newton_tangent=False))
-    if "whole-steps" in ablations:
-        settings = replace(settings, fit=replace(settings.fit, shorten_at_contact=0.0))
     lip_settings = LipContactSettings(where="--contact",
                                       stiffness=args.stiff_lips if "stiff-lips" in ablations else LipContactSettings.stiffness,
                                       newton_reach=0.0 if "narrow-newton-lips" in ablations else LipContactSettings.newton_reach)

@@ -208,6 +208,12 @@ for name in lips_held_404k_np2:5 lips_held_open_404k_np2:15 lining_spread_open_4
     --variants no-contact contact contact+lips-cut-whole --interleave --max-seconds 1500 --abort-seconds 4000 \
     -v 2> $RESULTS/contact/${name%:*}.log
 done
+# At the commit of its manifest entry, whose contact_tracking.py had the variant contact+whole-steps (a
+# Gauss-Newton step shortened where contact cuts its prediction, in the variant contact, against every step whole):
+record $RESULTS/contact/shortened_steps_open_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+  --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 \
+  --variants no-contact contact contact+whole-steps --interleave --max-seconds 1500 --abort-seconds 3600 \
+  -v 2> $RESULTS/contact/shortened_steps_open_404k_np2.log
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \

@@ -14,7 +14,6 @@ from petsc4py import PETSc
 import numpy as np
 import ipctk
 import pytest
-from dolfinx import fem
 import dolfinx.fem.petsc as fem_petsc
 
 from face_dolfinx.capture.synthetic import control_curves, truth_contact_options
@@ -471,54 +470,6 @@ def test_fit_of_pressed_lips_with_contact(model):
     assert error < 0.05
     assert problem.lips.penetration(problem.u.x.array) == 0.0
     assert problem.lips.min_distance(problem.u.x.array) > 0.0
-
-
-def test_a_prediction_through_the_other_lip_is_admitted_up_to_it(model):
-    """``FaceProblem.prediction_fraction``: a prediction that takes the lower lip 1 mm up, through
-    the upper (0.48 mm above it at rest), is pulled back by the lips, the state untouched; the
-    prediction shortened to that fraction (what a shortened Gauss-Newton step predicts) the lips
-    admit whole; without contact only the inversion guard bounds it."""
-    problem = FaceProblem(model, lip_contact=LipContactSettings())
-    rest = problem.u.x.array.copy()
-    lift = fem.Function(problem.V)
-    lift.x.array.reshape(-1, 3)[_lower_lip_blocks(problem.lips)] = problem.lips.up
-    lift.x.scatter_forward()
-    guess = rest + lift.x.array
-    fraction, contact = problem.prediction_fraction(guess)
-    assert 0.0 < fraction <= contact < 0.5
-    assert np.array_equal(problem.u.x.array, rest)
-    shortened = rest + fraction * (guess - rest)
-    assert problem.prediction_fraction(shortened)[1] > 0.9
-    assert problem.lips.min_distance(shortened) > 0.0
-    without = FaceProblem(model).prediction_fraction(guess)
-    assert without[1] == 1.0 and without[0] >= fraction
-
-
-def test_a_step_that_contact_cuts_is_shortened_to_what_it_admits(model, caplog):
-    """``FitSettings.shorten_at_contact``: fitted from rest to lips pressed together, the first
-    Gauss-Newton step's prediction takes the lips through each other; the step is shortened to the
-    part they admit, not counted among the frame's steps, and the fit ends as accurate as with
-    every step taken whole."""
-    from face_dolfinx.fitting import FaceFitter, FitSettings, MarkerSet
-    problem = FaceProblem(model, lip_contact=LipContactSettings())
-    truth = problem.activation_vector({**sphincter(model, 0.9), "depressor_anguli_oris_left": 0.2})
-    assert problem.solve(activations=truth).converged
-    markers = MarkerSet(problem, np.array(list(model.markers.values())))
-    targets = markers.positions(problem.u.x.array, problem.controls.cranium)
-    results = {}
-    for shorten in (0.0, 0.5):
-        problem.reset_to_rest()
-        settings = FitSettings(fit_head=False, fit_jaw=False, first_frame_gn_steps=10, shorten_at_contact=shorten)
-        caplog.clear()
-        with caplog.at_level(logging.DEBUG, logger="face_dolfinx.fitting.fitter"):
-            results[shorten] = FaceFitter(problem, markers, settings).fit_frame(targets)
-        shortened = re.findall(r"contact ([0-9.e-]+)\): the step shortened", caplog.text)
-        if MPI.COMM_WORLD.rank == 0:
-            assert (len(shortened) > 0) == (shorten > 0.0)
-            assert all(float(cut) < shorten for cut in shortened)
-        assert results[shorten].rms_error < 0.05  # mm
-        assert np.abs(results[shorten].activations - truth).max() < 0.05
-        assert problem.lips.penetration(problem.u.x.array) == 0.0
 
 
 def test_tracking_with_contact_builds_the_lips_into_its_problem(model):

@@ -36,10 +36,6 @@ from .settings import FitSettings
 log = logging.getLogger(__name__)
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
-# The shortest part of a Gauss-Newton step taken where contact cuts its prediction
-# (``FitSettings.shorten_at_contact``): a step cut to almost nothing would spend a solve on nothing.
-MIN_SHORTENED_STEP = 0.1
-MAX_SHORTENINGS = 1  # per frame
 
 
 class FaceFitter:
@@ -185,7 +181,6 @@ class FaceFitter:
         fresh_jacobians = 0      # exact ones so far
         retry_exact = False      # a step from an inexact Jacobian failed
         converged_objective = settings.marker_tolerance**2 * max(1, int(present.sum()))
-        shortenings = 0  # steps of this frame shortened where contact cut their prediction
         steps = 0
         marker_columns = None
         while steps < max_steps and objective > converged_objective:
@@ -214,24 +209,15 @@ class FaceFitter:
             if formulation.step_changes_objective:
                 objective, _ = self._objective(state, targets, present)
             candidate = formulation.retract(state, step)
-            guess = base_u + step @ dofs[:len(step)]
-            shortened = shortenings < MAX_SHORTENINGS and self._shortened_at_contact(candidate, guess)
-            if shortened:
-                # Not a step of the frame's count: the next one, from a Jacobian of the state in
-                # contact, takes the rest of the way.
-                shortenings, max_steps = shortenings + 1, max_steps + 1
-                step = shortened * step
-                candidate = formulation.retract(state, step)
-                guess = base_u + step @ dofs[:len(step)]
             t0 = time.perf_counter()
+            guess = base_u + step @ dofs[:len(step)]
             try:
                 self._equilibrium(candidate, guess, trial=True)
                 candidate_objective, _ = self._objective(candidate, targets, present)
             except EquilibriumError:
                 candidate_objective = math.inf
             phases["equilibrium"] += time.perf_counter() - t0
-            if not shortened:  # (a shortened step's length is the contact's, not the trust region's)
-                formulation.judge_step(step, residual, jac, objective - candidate_objective)
+            formulation.judge_step(step, residual, jac, objective - candidate_objective)
             full_step_good = candidate_objective < objective or (
                 not settings.line_search and math.isfinite(candidate_objective))
             if self.problem.comm.rank == 0:
@@ -256,8 +242,8 @@ class FaceFitter:
             decrease = (objective - new_objective) / max(objective, 1e-300)
             state, objective = accepted, new_objective
             limit = settings.max_fresh_jacobians if self.frames_done else None  # not from rest
-            fresh = limit is None or fresh_jacobians < limit or bool(shortened)
-            if not shortened and (abs(decrease) < settings.relative_decrease or np.linalg.norm(step) < settings.min_step):
+            fresh = limit is None or fresh_jacobians < limit
+            if abs(decrease) < settings.relative_decrease or np.linalg.norm(step) < settings.min_step:
                 break
         self.state = state
         self.previous_activations = state.activations.copy()
@@ -272,27 +258,6 @@ class FaceFitter:
         if marker_columns is not None:
             self._flag_unobservable(result, marker_columns, present)
         return result
-
-    def _shortened_at_contact(self, candidate: ControlState, guess: np.ndarray) -> float:
-        """The fraction of a Gauss-Newton step to take instead of the whole, or 0 for the whole:
-        where the contact terms pull the equilibrium's prediction back to below
-        ``shorten_at_contact`` of the way, the fraction they admit. The step's Jacobian does not
-        see a contact that forms along it (the lips 0.27 mm apart, the lining short of the teeth):
-        Newton from the cut prediction towards the whole step's controls then took tens of
-        iterations whose corrections the bounds cut to a few per cent (docs/performance.md)."""
-        problem = self.problem
-        if not self.settings.shorten_at_contact or (problem.lips is None and problem.teeth_contact is None
-                                                    and problem.contact is None):
-            return 0.0
-        fraction, contact = problem.prediction_fraction(
-            guess, activations=np.clip(candidate.activations, 0.0, 1.0), cranium=candidate.cranium,
-            jaw=self.formulation.jaw(candidate), pressure=candidate.pressure)
-        if contact >= self.settings.shorten_at_contact:
-            return 0.0
-        if problem.comm.rank == 0:
-            log.debug("the step's prediction pulled back to %.3g of the way (contact %.3g): the step shortened to it",
-                      fraction, contact)
-        return max(fraction, MIN_SHORTENED_STEP)
 
     def _flag_unobservable(self, result: FrameResult, marker_columns: np.ndarray, present: np.ndarray) -> None:
         """Name the controls the frame's visible markers cannot determine, in the result's flag

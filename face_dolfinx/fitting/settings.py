@@ -50,10 +50,5 @@ class FitSettings:
     # each such step then costs 10+ Newton iterations at equilibrium (docs/fitting.md: 0.1 was
     # faster but under-fitted fast takes in 3 steps).
     activation_trust_radius: float = 0.25
-    # With contact: a Gauss-Newton step whose equilibrium prediction the contact terms pull back to
-    # below this fraction of the way is shortened to the fraction they admit (at least
-    # fitter.MIN_SHORTENED_STEP; up to fitter.MAX_SHORTENINGS per frame, not counted among
-    # max_gn_steps), and the next step takes a Jacobian of the state in contact. 0: every step whole.
-    shorten_at_contact: float = 0.0
     penalty_growth: float = 1.05        # paper mode: rho_{i+1} = 1.05 rho_i
     penalty_final_ratio: float = 1e6    # ... until rho = 1e6 phi(c)

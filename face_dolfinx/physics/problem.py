@@ -520,11 +520,41 @@ class FaceProblem:
         contact objects (``AffineMap``s, world frame).
         """
         start = self.controls.copy()
-        target = self._target(start, activations, cranium, jaw, pressure, objects)
+        target = Controls(
+            self.activation_vector(activations) if activations is not None else start.activations,
+            cranium if cranium is not None else start.cranium,
+            jaw if jaw is not None else start.jaw,
+            float(pressure) if pressure is not None else start.pressure,
+            tuple(objects) if objects is not None else start.objects)
         if guess is not None:
             began = time.perf_counter()
             equilibrium = self.u.x.array.copy()
-            origin, carried, guess, fraction, cuts = self._bounded_prediction(start, target, guess)
+            origin = self._carried_with_head(start, target)
+            carried = equilibrium if origin is start else self.u.x.array.copy()
+            # A long linear prediction can invert elements: cut it short around a few nodes, or
+            # pull it back towards the equilibrium as a whole.
+            if self.bound_prediction_locally:
+                guess, fraction = self._bounded_locally(carried, guess)
+            else:
+                fraction = self.solver.inversion_guard.step_fraction(carried, carried - guess)
+            cuts = [("inversion guard", fraction)]
+            # ... or let the lips pass through each other, or the lining into the teeth
+            for label, term in (("lips", self.lips), ("teeth", self.teeth_contact), ("objects", self.contact)):
+                if term is None:
+                    continue
+                end = carried + fraction * (guess - carried)
+                if term is self.teeth_contact:  # the teeth move with their bones along the prediction
+                    poses = self.teeth_poses(origin.interpolate(target, fraction))
+                    cut = term.relative_fraction(carried, end, poses)
+                    projected = self._lining_projected(carried, end, poses) if cut < 1.0 else None
+                    if projected is not None:
+                        guess = carried + (projected - carried) / fraction
+                        cuts.append(("teeth, lining projected instead", cut))
+                        continue
+                else:
+                    cut = term.admissible_fraction(carried, end)
+                fraction *= cut
+                cuts.append((label, cut))
             if fraction < 1.0:
                 log.debug("prediction pulled back to %.3g of the way (%s)%s", fraction,
                           ", ".join(f"{label} {cut:.3g}" for label, cut in cuts if cut < 1.0),
@@ -585,66 +615,6 @@ class FaceProblem:
                                                 max_halvings=max_halvings)
         self.set_controls(target)
         return replace(report, newton_iterations=report.newton_iterations + sum(held)) if any(held) else report
-
-    def _target(self, start: Controls, activations, cranium, jaw, pressure, objects) -> Controls:
-        """``start`` with the controls given (not None) replaced."""
-        return Controls(
-            self.activation_vector(activations) if activations is not None else start.activations,
-            cranium if cranium is not None else start.cranium,
-            jaw if jaw is not None else start.jaw,
-            float(pressure) if pressure is not None else start.pressure,
-            tuple(objects) if objects is not None else start.objects)
-
-    def _bounded_prediction(self, start: Controls, target: Controls, guess: np.ndarray):
-        """The prediction ``guess`` of the equilibrium at ``target`` bounded as ``solve`` takes it:
-        the unknown carried with the head (``_carried_with_head``, which returns ``origin``, the
-        controls of ``carried``), then the fraction of the way from ``carried`` towards the
-        (possibly changed) ``guess`` that inverts no cell and breaks no contact, with each bound's
-        cut ``(label, fraction)``. Leaves the unknown at ``carried``."""
-        origin = self._carried_with_head(start, target)
-        carried = self.u.x.array.copy()
-        # A long linear prediction can invert elements: cut it short around a few nodes, or
-        # pull it back towards the equilibrium as a whole.
-        if self.bound_prediction_locally:
-            guess, fraction = self._bounded_locally(carried, guess)
-        else:
-            fraction = self.solver.inversion_guard.step_fraction(carried, carried - guess)
-        cuts = [("inversion guard", fraction)]
-        # ... or let the lips pass through each other, or the lining into the teeth
-        for label, term in (("lips", self.lips), ("teeth", self.teeth_contact), ("objects", self.contact)):
-            if term is None:
-                continue
-            end = carried + fraction * (guess - carried)
-            if term is self.teeth_contact:  # the teeth move with their bones along the prediction
-                poses = self.teeth_poses(origin.interpolate(target, fraction))
-                cut = term.relative_fraction(carried, end, poses)
-                projected = self._lining_projected(carried, end, poses) if cut < 1.0 else None
-                if projected is not None:
-                    guess = carried + (projected - carried) / fraction
-                    cuts.append(("teeth, lining projected instead", cut))
-                    continue
-            else:
-                cut = term.admissible_fraction(carried, end)
-            fraction *= cut
-            cuts.append((label, cut))
-        return origin, carried, guess, fraction, cuts
-
-    def prediction_fraction(self, guess: np.ndarray, activations=None, cranium: AffineMap | None = None,
-                            jaw: AffineMap | None = None, pressure: float | None = None) -> tuple[float, float]:
-        """How far ``solve`` would take the prediction ``guess`` of the equilibrium at these
-        controls before Newton: the fraction of the way it is pulled back to, and the part of that
-        the contact terms decide (1 without contact or where they cut nothing; the inversion
-        guard's cut and the lining moved out of the teeth excepted). Changes nothing
-        (collective)."""
-        start = self.controls.copy()
-        equilibrium = self.u.x.array.copy()
-        try:
-            _, _, _, fraction, cuts = self._bounded_prediction(
-                start, self._target(start, activations, cranium, jaw, pressure, None), guess)
-        finally:
-            self.u.x.array[:] = equilibrium
-            self._put_objects(start)
-        return fraction, float(np.prod([cut for label, cut in cuts if label in ("lips", "teeth", "objects")]))
 
     def _bounded_locally(self, carried: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, float]:
         """The prediction ``guess`` (from ``carried``) cut short around a few nodes where it

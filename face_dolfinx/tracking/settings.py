@@ -144,8 +144,7 @@ class TrackingSettings:
 PRESETS = {
     "default": TrackingSettings(),
     "fast": TrackingSettings(
-        FitSettings(max_gn_steps=2, max_fresh_jacobians=1, approximate_jacobian_within=1.0,
-                    shorten_at_contact=0.5),
+        FitSettings(max_gn_steps=2, max_fresh_jacobians=1, approximate_jacobian_within=1.0),
         reuse_factorization=True, refresh_contraction=0.5, newton_tolerance=1e-2, newton_energy_tolerance=100.0,
         line_search_iterations=3),
 }
