@@ -89,6 +89,25 @@ def test_a_step_shortened_by_a_contact_bound_is_judged_by_its_length():
     assert newton(policy, [(1e4, 1.0, False), (8.5e3, 1.0, False)]) == [True, False]
 
 
+def test_an_old_factor_whose_bounded_steps_crawl_is_refreshed():
+    """Corrections that a contact bound cuts to a tenth, each cutting the residual by 0.94 (what a
+    step of that length achieves, so each alone keeps the factor): after six such iterations in a
+    row the old factor is refreshed, and the count starts again after it; a faster cut in between
+    (0.85) starts it again too. Without the rule the factor is kept throughout."""
+    def crawl(cuts):
+        norms = np.cumprod([1e4] + cuts)
+        return [(norm, 1.0, False, 0.05) for norm in norms]
+    steps = crawl([0.94] * 14)
+    policy = FactorReusePolicy(across_solves=True, refresh_contraction=0.25)
+    # Iteration 0 factorises; the fresh factor is kept once; iterations 2-7 crawl on it.
+    assert newton(policy, steps) == [False, True] + [True] * 5 + [False] + [True] * 6 + [False]
+    interrupted = crawl([0.94] * 4 + [0.85] + [0.94] * 6)
+    assert newton(FactorReusePolicy(across_solves=True, refresh_contraction=0.25), interrupted) == \
+        [False] + [True] * 10 + [False]
+    never = FactorReusePolicy(across_solves=True, refresh_contraction=0.25, crawl_refresh_iterations=None)
+    assert newton(never, steps) == [False] + [True] * 14
+
+
 def test_reuse_across_solves_keeps_a_fresh_factor_for_one_more_iteration():
     """A fresh tangent whose correction cut the residual slowly (a contact barrier settling) is
     kept for the next iteration; a slow cut from the older factor then refreshes it."""

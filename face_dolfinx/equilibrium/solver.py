@@ -187,6 +187,14 @@ CRAWL_CONTACT_SHARE = 0.9
 # of the residual's square on the teeth's nodes); 404K tracking with the lips open: 0.85-0.997
 # where the factor was refreshed (docs/performance.md, "Settling on the teeth").
 SLOW_FALL_CONTACT_SHARE = 0.5
+# ``reuse_factorization``: an old factor whose corrections an energy term's bound cut in this many
+# iterations in a row (``FactorReusePolicy.crawl_refresh_iterations``), each cutting the residual by
+# less than 1 - CRAWL_REFRESH_CONTRACTION, is refreshed however well that matched the shortened
+# steps' length: the lips' second closure on the 404K face crept for 35 such iterations on a factor
+# made before the lips came close; refreshed after six, the next correction cut the residual 19-fold
+# (docs/performance.md, "An old factor refreshed where bounded steps crawl").
+CRAWL_REFRESH_ITERATIONS = 6
+CRAWL_REFRESH_CONTRACTION = 0.9
 
 # mm: a Dirichlet gap this small is closed by moving the bone nodes, not by more lifting.
 SNAP_DISTANCE = 1e-3
@@ -383,7 +391,11 @@ class FactorReusePolicy:
     factorisation at once bought nothing (20K tracked frames with lip and teeth contact,
     docs/performance.md); or, with Krylov on the old factor, a linear solve takes no more than
     ``krylov_refresh_iterations`` and the residual falls by ``KRYLOV_STALL_CONTRACTION`` or more per
-    iteration over the last two. Either way a step that the inversion guard had to cut (shorter than
+    iteration over the last two. Across solves, an old factor whose corrections an energy term's bound
+    cut in ``crawl_refresh_iterations`` iterations in a row, each cutting the residual by less than
+    1 - CRAWL_REFRESH_CONTRACTION, is refreshed however well that matched the steps' length: the
+    bound may be the factor's doing, the barrier stiffness of what came close since not in it.
+    Either way a step that the inversion guard had to cut (shorter than
     the energy terms' bounds cut it) refreshes the factor (it says the factor is stale, not that
     Newton stalls), unless ``keeps_cut_fresh_factor`` (a lifting solve,
     ``QuasistaticSolver.newton``) and the factor is fresh: then it is kept for one more iteration.
@@ -405,8 +417,10 @@ class FactorReusePolicy:
     def __init__(self, across_solves: bool = False, refresh_contraction: float = REFRESH_CONTRACTION,
                  converging_correction: float = CONVERGING_CORRECTION,
                  krylov_refresh_iterations: int = KRYLOV_REFRESH_ITERATIONS,
-                 judged_step_bound: float = JUDGED_STEP_BOUND):
+                 judged_step_bound: float = JUDGED_STEP_BOUND,
+                 crawl_refresh_iterations: int | None = CRAWL_REFRESH_ITERATIONS):
         self.across_solves = across_solves
+        self.crawl_refresh_iterations = crawl_refresh_iterations  # None: never for a crawl
         self.judged_step_bound = judged_step_bound
         self.refresh_contraction = refresh_contraction
         self.converging_correction = converging_correction  # 0: a fresh factor every iteration
@@ -422,6 +436,7 @@ class FactorReusePolicy:
         self.contraction = 0.0           # residual norm ratio of the last iteration
         self.release = math.inf          # R . du of the last correction (mN mm)
         self.two_step_contraction = math.inf  # geometric mean of the last two ratios
+        self.crawl = 0                   # old-factor iterations in a row with bounded steps and slow cuts
         self._last_norm = math.inf
 
     def start_solve(self) -> None:
@@ -433,6 +448,7 @@ class FactorReusePolicy:
             self.step_was_cut, self.step_bound, self.step_taken = False, 1.0, 1.0
             self.correction_size, self.contraction = math.inf, 0.0
             self.two_step_contraction = math.inf
+            self.crawl = 0
         else:
             self.two_step_contraction = math.sqrt(self.contraction * norm / max(self._last_norm, 1e-300))
             self.contraction = norm / max(self._last_norm, 1e-300)
@@ -463,14 +479,22 @@ class FactorReusePolicy:
         ends the solve. ``relaxes_instead``: asked (``across_solves``) only where the residual's
         slow fall alone would refresh the factor, True where the solver relaxes the contact nodes
         from this iteration on instead; the factor is then kept."""
+        crawled = (iteration > 0 and not self.fresh_factor and self.step_bound < 1.0
+                   and self.contraction > CRAWL_REFRESH_CONTRACTION)
+        self.crawl = self.crawl + 1 if crawled else 0
+        # A bound that keeps cutting an old factor's corrections short may be the factor's doing:
+        # the barrier stiffness of the pairs and nodes that came close since is not in it.
+        crawling = (self.across_solves and self.crawl_refresh_iterations is not None
+                    and self.crawl >= self.crawl_refresh_iterations)
         if linear_iterations is not None:
             contracting = (iteration > 0 and linear_iterations <= self.krylov_refresh_iterations
                            and self.two_step_contraction <= KRYLOV_STALL_CONTRACTION)
         else:
             # A step shortened to t of the correction cuts the residual of a quadratic model by t.
             expected = 1.0 - self.step_taken * (1.0 - self.refresh_contraction)
-            contracting = iteration > 0 and self.contraction <= expected
-            if (not contracting and old_factor_release is not None and self.across_solves and iteration > 0
+            contracting = iteration > 0 and self.contraction <= expected and not crawling
+            if (not contracting and not crawling and old_factor_release is not None and self.across_solves
+                    and iteration > 0
                     and self.has_factor and not self.fresh_factor and not self.step_was_cut
                     and self.step_bound >= self.judged_step_bound):
                 release = old_factor_release()  # the energy norm, squared, both by the same factor
