@@ -90,16 +90,18 @@ def test_a_step_shortened_by_a_contact_bound_is_judged_by_its_length():
 
 
 def test_an_old_factor_whose_bounded_steps_crawl_is_refreshed():
-    """Corrections that a contact bound cuts to a tenth, each cutting the residual by 0.94 (what a
-    step of that length achieves, so each alone keeps the factor): after six such iterations in a
-    row the old factor is refreshed, and the count starts again after it; a faster cut in between
-    (0.85) starts it again too. Without the rule the factor is kept throughout."""
+    """Corrections that a contact bound lets go a twentieth of the way, each cutting the residual
+    by 0.94 (better than the 0.96 a step of that length achieves, so each alone keeps the factor):
+    after six such corrections of the old factor in a row it is refreshed, and the count starts
+    again after it; a faster cut in between (0.85) starts it again too. Without the rule the factor
+    is kept throughout."""
     def crawl(cuts):
         norms = np.cumprod([1e4] + cuts)
         return [(norm, 1.0, False, 0.05) for norm in norms]
     steps = crawl([0.94] * 14)
     policy = FactorReusePolicy(across_solves=True, refresh_contraction=0.25)
-    # Iteration 0 factorises; the fresh factor is kept once; iterations 2-7 crawl on it.
+    # Iteration 0 factorises and its factor is kept once; the old factor's corrections of
+    # iterations 1-6 crawl, so iteration 7 refactorises; again at 14.
     assert newton(policy, steps) == [False, True] + [True] * 5 + [False] + [True] * 6 + [False]
     interrupted = crawl([0.94] * 4 + [0.85] + [0.94] * 6)
     assert newton(FactorReusePolicy(across_solves=True, refresh_contraction=0.25), interrupted) == \
