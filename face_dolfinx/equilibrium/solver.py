@@ -391,13 +391,13 @@ class FactorReusePolicy:
     factorisation at once bought nothing (20K tracked frames with lip and teeth contact,
     docs/performance.md); or, with Krylov on the old factor, a linear solve takes no more than
     ``krylov_refresh_iterations`` and the residual falls by ``KRYLOV_STALL_CONTRACTION`` or more per
-    iteration over the last two. Across solves, an old factor whose corrections an energy term's bound
-    cut in ``crawl_refresh_iterations`` iterations in a row, each cutting the residual by less than
-    1 - CRAWL_REFRESH_CONTRACTION, is refreshed however well that matched the steps' length: the
-    bound may be the factor's doing, the barrier stiffness of what came close since not in it.
-    Either way a step that the inversion guard had to cut (shorter than
-    the energy terms' bounds cut it) refreshes the factor (it says the factor is stale, not that
-    Newton stalls), unless ``keeps_cut_fresh_factor`` (a lifting solve,
+    iteration over the last two. Across solves with corrections by the factor alone, an old factor
+    whose corrections an energy term's bound cut in ``crawl_refresh_iterations`` iterations in a
+    row, each cutting the residual by less than 1 - CRAWL_REFRESH_CONTRACTION, is refreshed however
+    well that matched the steps' length: the bound may be the factor's doing, the barrier stiffness
+    of what came close since not in it. Either way a step that the inversion guard had to cut
+    (shorter than the energy terms' bounds cut it) refreshes the factor (it says the factor is
+    stale, not that Newton stalls), unless ``keeps_cut_fresh_factor`` (a lifting solve,
     ``QuasistaticSolver.newton``) and the factor is fresh: then it is kept for one more iteration.
 
     With energy terms the solver also gives ``keep_factor`` the old factor's correction at the
