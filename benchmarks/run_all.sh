@@ -222,10 +222,12 @@ for name in crawl_refresh_open_404k_np2 crawl_refresh_open_404k_np2_rerun; do
     -v 2> $RESULTS/contact/$name.log
 done
 # The same two variants over the lips' first closure and opening (frames 5-14).
-record $RESULTS/contact/crawl_refresh_404k_np2.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
-  --tets 400000 --truth-tets 20000 --head-motion --start 5 --frames 10 \
-  --variants no-contact contact contact+crawl-kept --interleave --max-seconds 1500 --abort-seconds 3600 \
-  -v 2> $RESULTS/contact/crawl_refresh_404k_np2.log
+for name in crawl_refresh_404k_np2 crawl_refresh_404k_np2_rerun; do
+  record $RESULTS/contact/$name.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+    --tets 400000 --truth-tets 20000 --head-motion --start 5 --frames 10 \
+    --variants no-contact contact contact+crawl-kept --interleave --max-seconds 1500 --abort-seconds 3600 \
+    -v 2> $RESULTS/contact/$name.log
+done
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
