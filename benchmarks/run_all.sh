@@ -214,19 +214,14 @@ record $RESULTS/contact/shortened_steps_open_404k_np2.jsonl mpirun -n 2 $PYTHON 
   --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 \
   --variants no-contact contact contact+whole-steps --interleave --max-seconds 1500 --abort-seconds 3600 \
   -v 2> $RESULTS/contact/shortened_steps_open_404k_np2.log
-# An old factor refreshed where bounded steps crawl (contact) against the factor kept (contact+crawl-kept).
-for name in crawl_refresh_open_404k_np2 crawl_refresh_open_404k_np2_rerun; do
-  record $RESULTS/contact/$name.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
-    --tets 400000 --truth-tets 20000 --head-motion --start 15 --frames 10 \
+# An old factor refreshed where bounded steps crawl (contact) against the factor kept (contact+crawl-kept),
+# over the open stretch (from frame 15) and the lips' first closure and opening (from frame 5).
+for name in crawl_refresh_open_404k_np2:15 crawl_refresh_open_404k_np2_rerun:15 crawl_refresh_404k_np2:5 \
+    crawl_refresh_404k_np2_rerun:5; do
+  record $RESULTS/contact/${name%:*}.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+    --tets 400000 --truth-tets 20000 --head-motion --start ${name#*:} --frames 10 \
     --variants no-contact contact contact+crawl-kept --interleave --max-seconds 1500 --abort-seconds 3600 \
-    -v 2> $RESULTS/contact/$name.log
-done
-# The same two variants over the lips' first closure and opening (frames 5-14).
-for name in crawl_refresh_404k_np2 crawl_refresh_404k_np2_rerun; do
-  record $RESULTS/contact/$name.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
-    --tets 400000 --truth-tets 20000 --head-motion --start 5 --frames 10 \
-    --variants no-contact contact contact+crawl-kept --interleave --max-seconds 1500 --abort-seconds 3600 \
-    -v 2> $RESULTS/contact/$name.log
+    -v 2> $RESULTS/contact/${name%:*}.log
 done
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
