@@ -76,17 +76,20 @@ TARGET_RATIO = 1.5  # docs/performance.md: a warm frame with contact at most 1.5
 # from a factor of the exact tangent instead of Newton's (``FitSettings.fresh_jacobian_from_newton_tangent``), and
 # Newton's tangent with the flesh's exact stiffness in every cell (``FaceProblem(definite_tangent=False)``), and
 # an old factor kept however long its bounded corrections crawl (``FactorReusePolicy.crawl_refresh_iterations``
-# None).
+# None), and the relaxation started on a slow fall by the teeth's nodes' share of the residual alone, not the
+# lips' too (``LipContact.relax_on_slow_fall`` off), and the lips' barrier of wider reach in Newton's tangent
+# on pairs that have parted too (``LipContact.reach_on_parting_pairs``).
 ABLATIONS = ("exact-lips", "contraction-refresh", "ascents", "step-stop-only", "relaxation", "static-teeth",
              "cut-lining", "cut-head", "residual-refresh", "slow-refresh", "stiff-lips", "wide-pattern",
              "narrow-newton-lips", "cut-whole", "judged-cuts", "exact-fresh-jacobians", "exact-flesh",
-             "crawl-kept")
+             "crawl-kept", "teeth-slow-fall", "parting-reach")
 VARIANTS = ("no-contact", "contact", "contact-krylov", "contact+exact-lips", "contact+contraction-refresh",
             "contact+exact-lips+contraction-refresh", "contact+ascents", "contact+step-stop-only",
             "contact+relaxation", "contact+static-teeth", "contact+cut-lining", "contact+cut-head",
             "contact+residual-refresh", "contact+slow-refresh", "contact+stiff-lips", "contact+wide-pattern",
             "contact+narrow-newton-lips", "contact+cut-whole", "contact+judged-cuts", "contact+exact-fresh-jacobians", "contact+exact-flesh",
-            "contact+no-crawl-relaxation", "contact+crawl-kept")
+            "contact+no-crawl-relaxation", "contact+crawl-kept", "contact+teeth-slow-fall", "contact+parting-reach",
+            "contact+teeth-slow-fall+parting-reach")
 WIDE_PATTERN_RADIUS = 15.0  # mm
 TIMED_TERMS = ("energy", "add_gradient", "add_hessian", "step_fraction", "admissible_fraction")
 # QuasistaticSolver's counters, per frame
@@ -254,6 +257,10 @@ def track_variant(name, model, capture, placement, truth, args, comm, began, row
         problem.solver.reuse_policy.judged_step_bound = 0.0
     if "crawl-kept" in ablations:
         problem.solver.reuse_policy.crawl_refresh_iterations = None
+    if "teeth-slow-fall" in ablations:
+        problem.lips.relax_on_slow_fall = False
+    if "parting-reach" in ablations:
+        problem.lips.reach_on_parting_pairs = True
     if "slow-refresh" in ablations:
         problem.solver.reuse_policy.refresh_contraction = args.slow_refresh_contraction
     if "step-stop-only" in ablations:

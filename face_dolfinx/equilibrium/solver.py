@@ -1001,14 +1001,15 @@ class QuasistaticSolver:
         tracking with the lips open, docs/performance.md, "Settling on the teeth"). (Not the
         pressed lips': on the small face, let go from a pressed equilibrium, relaxing them so took
         40 factorisations instead of 10.)"""
-        norms = self._contact_residual_norms(self.snes.getFunction()[0])
-        share = sum(norm ** 2 for term, norm in zip(self._surface_terms, norms)
-                    if getattr(term, "relax_on_slow_fall", False)) / self.snes.getFunctionNorm() ** 2
+        watched = [term.surface.owned_blocks for term in self._surface_terms if getattr(term, "relax_on_slow_fall", False)]
+        blocks = np.unique(np.concatenate(watched)) if watched else np.zeros(0, dtype=np.int32)
+        squares = np.square(self.snes.getFunction()[0].array_r).reshape(-1, 3)[blocks].sum()
+        share = self.comm.allreduce(squares, op=MPI.SUM) / self.snes.getFunctionNorm() ** 2
         if not share >= SLOW_FALL_CONTACT_SHARE:
             return False
         self._relaxing = True
         if self.comm.rank == 0:
-            log.debug("Newton: the residual falls slowly, %.3g of its square on an obstacle's contact nodes: "
+            log.debug("Newton: the residual falls slowly, %.3g of its square on the contact surfaces' nodes: "
                       "relaxing the contact nodes from here on, the factor kept", share)
         return True
 

@@ -179,6 +179,14 @@ class LipContact:
     # nodes, relaxes them (QuasistaticSolver, CRAWL_CUTS): the lips peeling apart, an edge-edge
     # pair at the front setting every bound (docs/performance.md, "The lips' opening").
     relax_on_crawl = True
+    # And one whose residual falls slowly on the lips' nodes (QuasistaticSolver,
+    # SLOW_FALL_CONTACT_SHARE): the lips letting go of each other, the flesh around them settling
+    # (the 20K face, frames 6-14 and 16-24 of the bilabial take with the head moving: 13 and 11
+    # factorisations in the warm frames instead of 16 and 12; docs/performance.md).
+    relax_on_slow_fall = True
+    # False: the wider barrier leaves out the pairs beyond dhat that have parted since the last
+    # Newton model (``_drop_parting``).
+    reach_on_parting_pairs = False
 
     def __init__(self, space: fem.FunctionSpace, upper: np.ndarray, lower: np.ndarray, up: np.ndarray,
                  settings: LipContactSettings, constrained_blocks: np.ndarray):
@@ -219,6 +227,7 @@ class LipContact:
         self._sides[self.upper_nodes] |= _UPPER
         self._sides[self.lower_nodes] |= _LOWER
         self._last = None  # the last state's collisions (``_state``)
+        self._wide_reference = None  # the lip nodes at the last Newton model (``_drop_parting``)
         # The cells near the lips (vertex blocks, rest corners, global vertex blocks), for
         # ``penetration``.
         cells = space.mesh.topology.index_map(3).size_local
@@ -409,6 +418,7 @@ class LipContact:
             wide.use_area_weighting = True
             wide.build(self.mesh, vertices, self.newton_potential.dhat)
             self._across(wide)
+            self._drop_parting(wide, vertices)
             if len(wide):
                 wide = self.newton_potential.hessian(wide, self.mesh, vertices,
                                                      project_hessian_to_psd=ipctk.PSDProjectionMethod.CLAMP).tocsc()
@@ -423,6 +433,24 @@ class LipContact:
                 self._add_matrix(change, A, free)
             A.assemble()
         return changed
+
+    def _drop_parting(self, collisions: ipctk.NormalCollisions, vertices: np.ndarray) -> None:
+        """Drop from the wider barrier's ``collisions`` the pairs beyond dhat that have parted since
+        the last Newton model: the wider barrier is there for pairs coming together; on lips letting
+        go of each other it is a stiffness against their parting that the energy does not have,
+        and Newton's corrections fall short of the opening."""
+        reference, self._wide_reference = self._wide_reference, vertices.copy(order="F")
+        if reference is None or self.reach_on_parting_pairs:
+            return
+        edges, faces = self.mesh.edges, self.mesh.faces
+        for kind in _FIRST_PRIMITIVE:
+            pairs = getattr(collisions, kind)
+            if pairs:
+                # ipctk's distances are squared.
+                setattr(collisions, kind, [
+                    pair for pair in pairs
+                    if (now := pair.compute_distance(vertices, edges, faces)) <= self.dhat ** 2
+                    or now <= pair.compute_distance(reference, edges, faces)])
 
     def _across(self, collisions: ipctk.NormalCollisions) -> None:
         """Drop from ``collisions`` the pairs of two primitives of one lip: the tangent's pattern
