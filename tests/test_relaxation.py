@@ -150,6 +150,35 @@ def test_by_default_the_relaxation_starts_once_newton_crawls_on_the_contact_node
     assert problem.lips.pairs(problem.u.x.array) > 20
 
 
+def test_a_slow_fall_on_the_lips_relaxes_the_contact_nodes_instead_of_refactorising(pressed, model, caplog):
+    """With the factor kept across solves, the lips' nodes count for the residual's slow fall
+    (``LipContact.relax_on_slow_fall``): the lips let go of each other from their pressed
+    equilibrium (the orbicularis oris off, the jaw opened 6 degrees; a warm start from the factor
+    of that equilibrium, as a tracked frame's) with fewer factorisations than with the teeth's
+    nodes' share alone (none here, so never relaxing), to the same equilibrium, no iterate
+    penetrating."""
+    solved = {}
+    for lips_count in (True, False):
+        problem = FaceProblem(model, lip_contact=LipContactSettings(), reuse_factorization=True)
+        problem.lips.relax_on_slow_fall = lips_count
+        problem.adopt(pressed.controls, pressed.u.x.array)
+        problem.solver.factorize(newton_model=True)
+        first = problem.solver.factorizations
+        iterates = LipIterates(problem.lips, problem.V)
+        problem.solver.snes.setMonitor(iterates)
+        with caplog.at_level("DEBUG", logger="face_dolfinx.equilibrium.solver"):
+            assert problem.solve(activations=sphincter(model, 0.0), jaw=jaw_pose(model.jaw, np.radians(6.0))).converged
+        problem.solver.snes.cancelMonitor()
+        started = MPI.COMM_WORLD.bcast(any("the factor kept" in record.getMessage() for record in caplog.records))
+        caplog.clear()
+        solved[lips_count] = problem, started, problem.solver.factorizations - first
+        assert min(iterates.distances) > 0.0 and max(iterates.depths) == 0.0
+    (relaxed, started, factorizations), (plain, plain_started, plain_factorizations) = solved[True], solved[False]
+    assert started and not plain_started
+    assert factorizations < plain_factorizations
+    assert np.abs(relaxed.u.x.array - plain.u.x.array).max() < 1e-4  # mm
+
+
 def test_sphere_pressed_into_the_slab_with_relaxation():
     relaxed, plain = (pressed_slab(depth=1.5, contact_relaxation=flag) for flag in (True, False))
     assert relaxed.solver.relaxation.local_iterations > 0

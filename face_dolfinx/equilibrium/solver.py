@@ -180,12 +180,13 @@ CREEP_LOAD_STEPS = 16
 CRAWL_CUTS = 6
 CRAWL_CONTACT_SHARE = 0.9
 # ``contact_relaxation=None`` with the factor kept across solves: where the residual's slow fall
-# would refresh the factor and the nodes of a rigid obstacle's contact (the teeth's: terms that
-# say ``relax_on_slow_fall``) hold at least this share of the residual's square, the relaxation
-# starts instead and the factor is kept (``_relaxes_instead``). The small face's lips pressed on
-# the teeth, the orbicularis oris raised by half: 3 factorisations instead of 9 (from 0.5 to 0.9
-# of the residual's square on the teeth's nodes); 404K tracking with the lips open: 0.85-0.997
-# where the factor was refreshed (docs/performance.md, "Settling on the teeth").
+# would refresh the factor and the nodes of the contact surfaces of terms that say
+# ``relax_on_slow_fall`` (the teeth's, an object's, the lips') hold at least this share of the
+# residual's square, the relaxation starts instead and the factor is kept (``_relaxes_instead``).
+# The small face's lips pressed on the teeth, the orbicularis oris raised by half: 3
+# factorisations instead of 9 (from 0.5 to 0.9 of the residual's square on the teeth's nodes);
+# 404K tracking with the lips open: 0.85-0.997 where the factor was refreshed
+# (docs/performance.md, "Settling on the teeth").
 SLOW_FALL_CONTACT_SHARE = 0.5
 # ``reuse_factorization``: an old factor whose corrections an energy term's bound cut in this many
 # iterations in a row (``FactorReusePolicy.crawl_refresh_iterations``), each cutting the residual by
@@ -639,7 +640,7 @@ class QuasistaticSolver:
         self._bounding_term = None  # the energy term whose bound cut the last correction most
         self._tracing = False  # the Newton trace is on (rank 0's logger, the same on every rank)
         # True: relax the contact nodes after every correction; None: once Newton crawls on them
-        # (CRAWL_CUTS) or the residual falls slowly on the teeth's (SLOW_FALL_CONTACT_SHARE); False: never.
+        # (CRAWL_CUTS) or the residual falls slowly on them (SLOW_FALL_CONTACT_SHARE); False: never.
         self.contact_relaxation = contact_relaxation
         self._relaxing = False  # ... after the corrections of this Newton solve
         self._crawl_cuts = 0  # corrections in a row that a bound cut, the residual on the contact nodes
@@ -992,15 +993,14 @@ class QuasistaticSolver:
         return self.relaxation is not None and self.contact_relaxation is None and not self._relaxing
 
     def _relaxes_instead(self) -> bool:
-        """Where the residual's slow fall would refresh the factor: if the nodes of the terms that
-        say ``relax_on_slow_fall`` (a rigid obstacle's: the teeth, objects) hold
+        """Where the residual's slow fall would refresh the factor: if the surface nodes of the
+        terms that say ``relax_on_slow_fall`` (the teeth, objects, the lips) hold
         SLOW_FALL_CONTACT_SHARE of the residual's square, the relaxation of the contact nodes
         starts (for the rest of the solve) and the factor is kept (collective). The lining resting
         on the teeth settles on a barrier whose stiffness changes by orders of magnitude with the
         gap: there a fresh factor's correction cut the residual no faster than an old one's (404K
-        tracking with the lips open, docs/performance.md, "Settling on the teeth"). (Not the
-        pressed lips': on the small face, let go from a pressed equilibrium, relaxing them so took
-        40 factorisations instead of 10.)"""
+        tracking with the lips open, docs/performance.md, "Settling on the teeth"); so do the lips
+        letting go of each other (docs/performance.md, "The lips' opening, again")."""
         watched = [term.surface.owned_blocks for term in self._surface_terms if getattr(term, "relax_on_slow_fall", False)]
         blocks = np.unique(np.concatenate(watched)) if watched else np.zeros(0, dtype=np.int32)
         squares = np.square(self.snes.getFunction()[0].array_r).reshape(-1, 3)[blocks].sum()

@@ -226,8 +226,8 @@ class FaceProblem:
         (``equilibrium.relaxation``): fewer factorisations where pressed lips slide
         (docs/performance.md, "Contact in tracking"). None (default): only once a Newton solve
         crawls on them (``equilibrium.solver.CRAWL_CUTS``, docs/performance.md, "The lips'
-        opening") or, with ``reuse_factorization``, where the residual's slow fall on the teeth's
-        nodes would refresh the factor (``SLOW_FALL_CONTACT_SHARE``, "Settling on the teeth");
+        opening") or, with ``reuse_factorization``, where the residual's slow fall on the contact
+        surfaces' nodes would refresh the factor (``SLOW_FALL_CONTACT_SHARE``, "Settling on the teeth");
         True: after every correction; False: never.
     definite_tangent : Newton's tangent takes each cell's flesh stiffness with its clearly negative
         curvature clamped (``equilibrium.definite``), until Newton is near the solution; the
