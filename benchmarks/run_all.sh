@@ -223,6 +223,14 @@ for name in crawl_refresh_open_404k_np2:15 crawl_refresh_open_404k_np2_rerun:15 
     --variants no-contact contact contact+crawl-kept --interleave --max-seconds 1500 --abort-seconds 3600 \
     -v 2> $RESULTS/contact/${name%:*}.log
 done
+# The lips' slow fall relaxing the contact nodes and their wider barrier without parting pairs (contact)
+# against neither (contact+teeth-slow-fall+parting-reach), over the same two stretches.
+for name in lips_slow_fall_404k_np2:5 lips_slow_fall_open_404k_np2:15; do
+  record $RESULTS/contact/${name%:*}.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
+    --tets 400000 --truth-tets 20000 --head-motion --start ${name#*:} --frames 10 \
+    --variants no-contact contact contact+teeth-slow-fall+parting-reach --interleave --max-seconds 1500 \
+    --abort-seconds 3600 -v 2> $RESULTS/contact/${name%:*}.log
+done
 
 # Tracking: fit --fast against the naive loop at the paper's scale, and the solver variants at 50K.
 record $RESULTS/tracking/tracking_404k_np2_fast_naive.jsonl \
