@@ -145,6 +145,34 @@ def _lower_lip_blocks(lips) -> np.ndarray:
     return lips.surface.owned_blocks[lower]
 
 
+def test_newton_tangent_leaves_out_the_wider_barrier_on_pairs_that_parted(pressed):
+    """The lower lip moved 0.2 mm off the pressed upper (beyond dhat, within the wider reach):
+    Newton's model there, after one at the pressed lips, carries no wider barrier (nor any pair
+    within dhat); after a model with the lip 0.4 mm off it carries it whole, as with
+    ``reach_on_parting_pairs``."""
+    lips, u = pressed.lips, pressed.u.vector
+
+    def lowered(distance):
+        x = u.copy()
+        x.array.reshape(-1, 3)[_lower_lip_blocks(lips)] -= distance * lips.up
+        return x
+
+    def model_after(first, then, parting_too):
+        lips.reach_on_parting_pairs = parting_too
+        try:
+            _energy_gradient_matrix(pressed, lips, first, lips.add_newton_correction)
+            return _energy_gradient_matrix(pressed, lips, then, lips.add_newton_correction)[2].norm()
+        finally:
+            lips.reach_on_parting_pairs = False
+
+    apart = lowered(0.2)
+    assert lips.pairs(apart.array_r) == 0 < lips.pairs(u.array_r)
+    whole = model_after(u, apart, True)
+    assert whole > 0.0
+    assert model_after(u, apart, False) == 0.0
+    assert model_after(lowered(0.4), apart, False) == pytest.approx(whole, rel=1e-12)
+
+
 def test_gradient_and_hessian_against_differences_of_the_energy(pressed):
     """Along a random direction of the free dofs: the lips' dE . v against central differences of
     their energy, and K v (the solver's tangent, flesh and lips) against central differences of

@@ -16,7 +16,8 @@ Cholesky and the sensitivities dX/dc (one solve per control with the same factor
 with no change. Newton's own tangent, while it is far from the solution, has each pair's Hessian
 projected onto the positive semidefinite ones (``add_newton_correction``, IPC's practice): the
 exact one turns indefinite along the pressed lips' sliding. That tangent also carries a barrier of
-wider reach (``newton_reach``, 10 dhat by default) on the pairs across the lips: a model that sees
+wider reach (``newton_reach``, 10 dhat by default) on the pairs across the lips, not on those beyond
+dhat that have parted since its last model (``reach_on_parting_pairs``): a model that sees
 only the pairs within dhat lets a correction bring together pairs it does not see, and the step
 bound then cuts it short; with the wider barrier Newton sees them coming (from rest, 13-14
 factorisations on the 404K face where it took 17-18, half the Newton iterations on the 20K face;
@@ -180,9 +181,10 @@ class LipContact:
     # pair at the front setting every bound (docs/performance.md, "The lips' opening").
     relax_on_crawl = True
     # And one whose residual falls slowly on the lips' nodes (QuasistaticSolver,
-    # SLOW_FALL_CONTACT_SHARE): the lips letting go of each other, the flesh around them settling
-    # (the 20K face, frames 6-14 and 16-24 of the bilabial take with the head moving: 13 and 11
-    # factorisations in the warm frames instead of 16 and 12; docs/performance.md).
+    # SLOW_FALL_CONTACT_SHARE): the lips letting go of each other. The 5K face's pressed lips let go:
+    # 2-6 factorisations instead of 3-20; the 20K face, frames 6-14 and 16-24 of the bilabial take
+    # with the head moving: 13 and 11 in the warm frames instead of 16 and 12; at 404K the opening 10
+    # instead of 22, the second closure 14 instead of 8 (docs/performance.md, "The lips' slow fall").
     relax_on_slow_fall = True
     # False: the wider barrier leaves out the pairs beyond dhat that have parted since the last
     # Newton model (``_drop_parting``).
@@ -438,7 +440,9 @@ class LipContact:
         """Drop from the wider barrier's ``collisions`` the pairs beyond dhat that have parted since
         the last Newton model: the wider barrier is there for pairs coming together; on lips letting
         go of each other it is a stiffness against their parting that the energy does not have,
-        and Newton's corrections fall short of the opening."""
+        and Newton's corrections fall short of the opening. (The 20K face, frames 6-14 and 16-24 of
+        the bilabial take with the head moving: 15 and 13 factorisations in the warm frames against
+        16 and 12, with the slow fall on the lips' nodes 12 and 11 against 13 and 11.)"""
         reference, self._wide_reference = self._wide_reference, vertices.copy(order="F")
         if reference is None or self.reach_on_parting_pairs:
             return
