@@ -225,7 +225,8 @@ for name in crawl_refresh_open_404k_np2:15 crawl_refresh_open_404k_np2_rerun:15 
 done
 # The lips' slow fall relaxing the contact nodes and their wider barrier without parting pairs (contact)
 # against neither (contact+teeth-slow-fall+parting-reach), over the same two stretches.
-for name in lips_slow_fall_404k_np2:5 lips_slow_fall_open_404k_np2:15; do
+for name in lips_slow_fall_404k_np2:5 lips_slow_fall_404k_np2_rerun:5 lips_slow_fall_open_404k_np2:15 \
+    lips_slow_fall_open_404k_np2_rerun:15; do
   record $RESULTS/contact/${name%:*}.jsonl mpirun -n 2 $PYTHON benchmarks/contact_tracking.py \
     --tets 400000 --truth-tets 20000 --head-motion --start ${name#*:} --frames 10 \
     --variants no-contact contact contact+teeth-slow-fall+parting-reach --interleave --max-seconds 1500 \

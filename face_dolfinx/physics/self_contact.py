@@ -184,7 +184,8 @@ class LipContact:
     # SLOW_FALL_CONTACT_SHARE): the lips letting go of each other. The 5K face's pressed lips let go:
     # 2-6 factorisations instead of 3-20; the 20K face, frames 6-14 and 16-24 of the bilabial take
     # with the head moving: 13 and 11 in the warm frames instead of 16 and 12; at 404K the opening 10
-    # instead of 22, the second closure 14 instead of 8 (docs/performance.md, "The lips' slow fall").
+    # instead of 16-22, the second closure 10-14 instead of 8 (docs/performance.md, "The lips' slow
+    # fall").
     relax_on_slow_fall = True
     # False: the wider barrier leaves out the pairs beyond dhat that have parted since the last
     # Newton model (``_drop_parting``).
